@@ -1,0 +1,54 @@
+"""How a training run talks to its caller: progress, metrics, evaluations, checkpoints, and a stop flag.
+
+The service's worker implements this against its database; the CLI draws a progress bar. Every method has a no-op
+default so a caller overrides only what it needs.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+
+class Callback:
+    def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
+        """phase is 'dynamics', 'train' or 'export'; step counts within the phase, out of total."""
+
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        """Named scalar metrics at a global SAC step (step 0 and negative for the dynamics phase)."""
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        """An evaluation in the real env after `epoch` epochs."""
+
+    def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
+        """A checkpoint was written atomically at `path`."""
+
+    def should_stop(self) -> bool:
+        """Asked between steps; True stops the run at that boundary with a final checkpoint."""
+        return False
+
+
+class ProgressBar(Callback):
+    """A tqdm bar over SAC steps showing the latest evaluation."""
+
+    def __init__(self) -> None:
+        self._bar = None
+        self._phase = None
+
+    def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
+        from tqdm import tqdm
+
+        if phase != self._phase:
+            self.close()
+            self._phase = phase
+            self._bar = tqdm(total=total or None, desc=phase, unit="step" if phase == "train" else "epoch")
+        self._bar.n = step
+        self._bar.refresh()
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        if self._bar is not None:
+            self._bar.set_postfix(epoch=epoch, ret=f"{mean_return:.0f}", score=f"{normalized_score:.1f}")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

@@ -1,0 +1,45 @@
+"""Checkpoint files: atomic writes, newest-first lookup, pruning. Names sort by position in the run."""
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import torch
+
+_NAME = re.compile(r"^ckpt-e(\d{6})-s(\d{6})\.pt$")
+
+
+def checkpoint_name(epoch: int, step: int) -> str:
+    return f"ckpt-e{epoch:06d}-s{step:06d}.pt"
+
+
+def list_checkpoints(directory: str | Path) -> list[Path]:
+    """Oldest first."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(p for p in directory.iterdir() if _NAME.match(p.name))
+
+
+def save_checkpoint(state: dict, directory: str | Path, epoch: int, step: int, keep: int) -> Path:
+    """Write to a temporary name, fsync, rename: a crash never leaves a half-written checkpoint under a real name."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / checkpoint_name(epoch, step)
+    tmp = directory / f".{path.name}.tmp"
+    with open(tmp, "wb") as handle:
+        torch.save(state, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    tmp.replace(path)
+    for old in list_checkpoints(directory)[:-keep]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def load_latest(directory: str | Path, device: torch.device | str = "cpu") -> dict | None:
+    found = list_checkpoints(directory)
+    if not found:
+        return None
+    return torch.load(found[-1], map_location=device, weights_only=False)

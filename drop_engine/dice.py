@@ -1,0 +1,70 @@
+"""GradientDICE: per-member estimators of the density ratio tau_k(s, a) = rho(pi, model k) / rho(data).
+
+All estimators are one batched module (member k = elite k). The saddle point min_tau max_{f, nu} J is approached
+with simultaneous gradient steps on the same batch: one backward pass of J, then the f/nu gradients are negated so
+their optimiser ascends while tau's descends.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import DiceConfig
+from .nn import EnsembleMLP, Standardize
+
+
+class GradientDice(nn.Module):
+    def __init__(self, members: int, obs_dim: int, act_dim: int, cfg: DiceConfig, gamma: float):
+        super().__init__()
+        self.members, self.gamma, self.lam = members, gamma, cfg.lam
+        self.norm = Standardize(obs_dim)
+        in_dim = obs_dim + act_dim
+        self.tau_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
+        self.f_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
+        self.nu = nn.Parameter(torch.zeros(members, 1))
+        self.tau_optim = torch.optim.Adam(self.tau_net.parameters(), lr=cfg.lr)
+        self.f_optim = torch.optim.Adam([*self.f_net.parameters(), self.nu], lr=cfg.lr)
+
+    def _input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.norm(obs), act], -1)
+
+    def tau(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """Ratio estimates, (members, N); inputs (N, d) shared or (members, N, d)."""
+        return self.tau_net(self._input(obs, act)).squeeze(-1)
+
+    def objective(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> torch.Tensor:
+        """J_k per member, (members,). next_obs/next_act are per member: (members, N, d)."""
+        x, x_next, x0 = self._input(obs, act), self._input(next_obs, next_act), self._input(obs0, act0)
+        tau = self.tau_net(x).squeeze(-1)
+        f = self.f_net(x).squeeze(-1)
+        f_next = self.f_net(x_next).squeeze(-1)
+        f0 = self.f_net(x0).squeeze(-1)
+        nu = self.nu
+        j = (
+            (1 - self.gamma) * f0.mean(1)
+            + self.gamma * (tau * f_next * not_done).mean(1)
+            - (tau * f).mean(1)
+            - 0.5 * f.pow(2).mean(1)
+            + self.lam * ((nu * tau).mean(1) - nu.squeeze(1) - 0.5 * nu.squeeze(1).pow(2))
+        )
+        return j
+
+    def update(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> dict[str, torch.Tensor]:
+        j = self.objective(obs, act, next_obs, next_act, obs0, act0, not_done)
+        self.tau_optim.zero_grad(set_to_none=True)
+        self.f_optim.zero_grad(set_to_none=True)
+        j.sum().backward()
+        for group in self.f_optim.param_groups:
+            for p in group["params"]:
+                if p.grad is not None:
+                    p.grad.neg_()
+        self.tau_optim.step()
+        self.f_optim.step()
+        return {"dice/objective": j.detach().mean()}
+
+    def optim_state(self) -> dict:
+        return {"tau_optim": self.tau_optim.state_dict(), "f_optim": self.f_optim.state_dict()}
+
+    def load_optim_state(self, state: dict) -> None:
+        self.tau_optim.load_state_dict(state["tau_optim"])
+        self.f_optim.load_state_dict(state["f_optim"])

@@ -1,0 +1,51 @@
+"""Policy export: a TorchScript module that needs only torch to load, plus state_dict and metadata beside it."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from .sac import Actor
+
+
+class DeterministicPolicy(nn.Module):
+    """Observation batch in, deterministic tanh actions out; the observation normaliser is inside."""
+
+    def __init__(self, actor: Actor):
+        super().__init__()
+        self.norm = actor.norm
+        self.net = actor.net
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        mu, _ = self.net(self.norm(obs.to(torch.float32))).chunk(2, -1)
+        return torch.tanh(mu)
+
+
+def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str, Path]:
+    """Write policy.pt (TorchScript), policy_state_dict.pt and metadata.json; returns their paths."""
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    policy = DeterministicPolicy(copy.deepcopy(actor).cpu()).eval()
+    paths = {"torchscript": out / "policy.pt", "state_dict": out / "policy_state_dict.pt", "metadata": out / "metadata.json"}
+    scripted = torch.jit.script(policy)
+    tmp = paths["torchscript"].with_suffix(".tmp")
+    scripted.save(str(tmp))
+    tmp.replace(paths["torchscript"])
+    torch.save(policy.state_dict(), paths["state_dict"])
+    paths["metadata"].write_text(json.dumps(metadata, indent=2, default=str))
+    return paths
+
+
+def load_policy(path: str | Path):
+    """Load an exported TorchScript policy as a numpy -> numpy function."""
+    module = torch.jit.load(str(path), map_location="cpu").eval()
+
+    def act(obs):
+        with torch.no_grad():
+            return module(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+
+    return act

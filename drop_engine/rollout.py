@@ -1,0 +1,114 @@
+"""Transition buffers and model rollouts with penalised rewards, all on the training device."""
+from __future__ import annotations
+
+import torch
+
+from .config import PenaltyConfig
+from .dice import GradientDice
+from .dynamics import GaussianEnsemble
+from .envs import TerminationFn
+from .penalties import penalized_reward
+from .sac import Actor
+
+FIELDS = ("obs", "act", "rew", "next_obs", "done")
+
+
+class ReplayBuffer:
+    """Preallocated FIFO ring of transitions, sampled by index tensors."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device | str = "cpu"):
+        self.capacity, self.ptr, self.size = capacity, 0, 0
+        dims = {"obs": (obs_dim,), "act": (act_dim,), "rew": (), "next_obs": (obs_dim,), "done": ()}
+        self.data = {k: torch.zeros((capacity, *dims[k]), device=device) for k in FIELDS}
+
+    @classmethod
+    def from_tensors(cls, **fields: torch.Tensor) -> "ReplayBuffer":
+        obs = fields["obs"]
+        buf = cls(len(obs), obs.shape[1], fields["act"].shape[1], obs.device)
+        buf.add(**fields)
+        return buf
+
+    def add(self, obs, act, rew, next_obs, done) -> None:
+        values = {"obs": obs, "act": act, "rew": rew, "next_obs": next_obs, "done": done}
+        n = len(obs)
+        if n > self.capacity:  # only the newest rows fit
+            values = {k: v[-self.capacity :] for k, v in values.items()}
+            n = self.capacity
+        idx = (self.ptr + torch.arange(n, device=obs.device)) % self.capacity
+        for k in FIELDS:
+            self.data[k].index_copy_(0, idx, values[k].to(self.data[k].dtype))
+        self.ptr = (self.ptr + n) % self.capacity
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, n: int) -> tuple[torch.Tensor, ...]:
+        idx = torch.randint(0, self.size, (n,), device=self.data["obs"].device)
+        return tuple(self.data[k][idx] for k in FIELDS)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def state_dict(self) -> dict:
+        return {"ptr": self.ptr, "size": self.size, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.ptr, self.size = state["ptr"], state["size"]
+        for k in FIELDS:
+            self.data[k][: self.size] = state["data"][k].to(self.data[k].device)
+
+
+def sample_members(
+    model: GaussianEnsemble, obs: torch.Tensor, act: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One model step per sample from a uniformly drawn elite: (reward, next_obs, elite position, logvar of all)."""
+    mean, logvar = model(obs, act)
+    n = obs.shape[0]
+    pos = torch.randint(0, model.num_elites, (n,), device=obs.device)
+    rows = torch.arange(n, device=obs.device)
+    member = model.elites[pos]
+    mu, lv = mean[member, rows], logvar[member, rows]
+    sample = mu + torch.exp(0.5 * lv) * torch.randn_like(mu)
+    return sample[:, 0], obs + sample[:, 1:], pos, logvar
+
+
+@torch.no_grad()
+def model_rollout(
+    actor: Actor,
+    model: GaussianEnsemble,
+    dice: GradientDice | None,
+    starts: torch.Tensor,
+    horizon: int,
+    algorithm: str,
+    penalty: PenaltyConfig,
+    termination: TerminationFn,
+    buffer: ReplayBuffer,
+) -> dict[str, torch.Tensor]:
+    """Roll the stochastic policy through the model for `horizon` steps; terminated samples stop."""
+    obs = starts
+    pens, taus, rews, added = [], [], [], 0
+    for _ in range(horizon):
+        act = actor.act(obs)
+        rew, next_obs, pos, logvar = sample_members(model, obs, act)
+        tau = None
+        if dice is not None:
+            tau = dice.tau(obs, act).gather(0, pos.unsqueeze(0)).squeeze(0)
+            taus.append(tau)
+        rew_pen, pen = penalized_reward(algorithm, rew, penalty, tau, logvar)
+        done = termination(obs, act, next_obs)
+        buffer.add(obs, act, rew_pen, next_obs, done.float())
+        pens.append(pen)
+        rews.append(rew)
+        added += len(obs)
+        keep = ~done
+        obs = next_obs[keep]
+        if obs.shape[0] == 0:
+            break
+    stats = {
+        "rollout/penalty_mean": torch.cat(pens).mean(),
+        "rollout/reward_mean": torch.cat(rews).mean(),
+        "rollout/length_mean": torch.tensor(added / len(starts)),
+        "rollout/model_buffer_size": torch.tensor(float(len(buffer))),
+    }
+    if taus:
+        tau_all = torch.cat(taus)
+        stats.update({"dice/tau_mean": tau_all.mean(), "dice/tau_min": tau_all.min(), "dice/tau_max": tau_all.max()})
+    return stats

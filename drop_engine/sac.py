@@ -1,0 +1,116 @@
+"""Soft actor-critic: tanh-Gaussian actor, twin critics as one two-member batched network, learned temperature."""
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import SACConfig
+from .nn import EnsembleMLP, Standardize, mlp, soft_update
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+class Actor(nn.Module):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...]):
+        super().__init__()
+        self.norm = Standardize(obs_dim)
+        self.net = mlp(obs_dim, hidden, 2 * act_dim)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mu, log_std = self.net(self.norm(obs)).chunk(2, -1)
+        return mu, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A reparameterised tanh-squashed action and its log-probability."""
+        mu, log_std = self(obs)
+        std = log_std.exp()
+        u = mu + std * torch.randn_like(mu)
+        log_prob = (-0.5 * ((u - mu) / std).pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+        # log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the numerically stable form.
+        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
+        return torch.tanh(u), log_prob
+
+    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        if deterministic:
+            return torch.tanh(self(obs)[0])
+        return self.sample(obs)[0]
+
+
+class TwinCritic(nn.Module):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...]):
+        super().__init__()
+        self.norm = Standardize(obs_dim)
+        self.net = EnsembleMLP(2, obs_dim + act_dim, hidden, 1)
+
+    def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """Q-values of both critics, (2, N)."""
+        return self.net(torch.cat([self.norm(obs), act], -1)).squeeze(-1)
+
+
+class SAC(nn.Module):
+    """Holds the networks, target critic, temperature and optimisers; `update` is one gradient step of all three."""
+
+    def __init__(self, obs_dim: int, act_dim: int, cfg: SACConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.actor = Actor(obs_dim, act_dim, cfg.hidden)
+        self.critic = TwinCritic(obs_dim, act_dim, cfg.hidden)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = nn.Parameter(torch.zeros(()))
+        self.target_entropy = float(cfg.target_entropy if cfg.target_entropy is not None else -act_dim)
+        self.actor_optim = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optim = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+
+    def set_obs_normalizer(self, mean, std) -> None:
+        for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
+            module.set(mean, std)
+
+    def update(self, obs, act, rew, next_obs, done) -> dict[str, torch.Tensor]:
+        """One SAC step; returns detached scalars so callers decide when to synchronise."""
+        cfg = self.cfg
+        alpha = self.log_alpha.exp().detach()
+        with torch.no_grad():
+            next_act, next_logp = self.actor.sample(next_obs)
+            q_next = self.critic_target(next_obs, next_act).min(0).values - alpha * next_logp
+            target = rew + cfg.gamma * (1.0 - done) * q_next
+        q = self.critic(obs, act)
+        critic_loss = (q - target).pow(2).mean(1).sum()
+        self.critic_optim.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optim.step()
+
+        new_act, logp = self.actor.sample(obs)
+        self.critic.requires_grad_(False)
+        q_new = self.critic(obs, new_act).min(0).values
+        self.critic.requires_grad_(True)
+        actor_loss = (alpha * logp - q_new).mean()
+        self.actor_optim.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_optim.step()
+
+        alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+        self.alpha_optim.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_optim.step()
+
+        soft_update(self.critic_target, self.critic, cfg.tau)
+        return {
+            "sac/critic_loss": critic_loss.detach(),
+            "sac/actor_loss": actor_loss.detach(),
+            "sac/alpha_loss": alpha_loss.detach(),
+            "sac/alpha": alpha,
+            "sac/q_mean": q.detach().mean(),
+            "sac/entropy": -logp.detach().mean(),
+        }
+
+    def optim_state(self) -> dict:
+        return {name: getattr(self, name).state_dict() for name in ("actor_optim", "critic_optim", "alpha_optim")}
+
+    def load_optim_state(self, state: dict) -> None:
+        for name, value in state.items():
+            getattr(self, name).load_state_dict(value)

@@ -1,0 +1,318 @@
+"""Algorithm 1 of DROP, with MOPO and MBPO as penalties in the same loop; checkpoints and exact resume.
+
+Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0), roll the policy out from
+`rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
+mixing real and model transitions, then evaluate every `eval_every` epochs. The whole state, RNGs included, is
+checkpointed at epoch ends and whenever the caller asks to stop, so a resumed run continues the same number stream.
+"""
+from __future__ import annotations
+
+import random
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .callbacks import Callback
+from .checkpoint import load_latest, save_checkpoint
+from .config import TrainConfig
+from .data import Dataset, Normalizer, load_dataset
+from .dice import GradientDice
+from .dynamics import DynamicsReport, GaussianEnsemble, train_dynamics
+from .envs import get_env
+from .evaluate import evaluate
+from .export import export_policy
+from .rollout import ReplayBuffer, model_rollout
+from .sac import SAC
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass
+class TrainResult:
+    status: str  # "completed" or "stopped"
+    epochs: int
+    global_step: int
+    last_return: float | None = None
+    last_score: float | None = None
+    best_score: float | None = None
+    evaluations: list[dict] = field(default_factory=list)
+    policy: dict[str, str] | None = None
+    dynamics: dict | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    random.seed(seed)
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+class Trainer:
+    def __init__(self, dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path, callback: Callback | None = None):
+        self.cfg = config
+        self.out = Path(out_dir)
+        self.ckpt_dir = self.out / "checkpoints"
+        self.cb = callback or Callback()
+        self.device = torch.device(config.device)
+        if config.threads:
+            torch.set_num_threads(config.threads)
+        self.spec = get_env(config.env)
+        self.data = dataset if isinstance(dataset, Dataset) else load_dataset(dataset, env=config.env)
+        self.rng = seed_everything(config.seed)
+        obs_dim, act_dim = self.data.obs_dim, self.data.act_dim
+
+        dev = self.device
+        t = lambda a: torch.as_tensor(a, device=dev)  # noqa: E731
+        self.real = ReplayBuffer.from_tensors(
+            obs=t(self.data.observations), act=t(self.data.actions), rew=t(self.data.rewards),
+            next_obs=t(self.data.next_observations), done=t(self.data.terminals.astype(np.float32)),
+        )
+        norm = Normalizer.fit(self.data.observations) if config.normalize_obs else Normalizer.identity(obs_dim)
+        self.model = GaussianEnsemble(obs_dim, act_dim, config.dynamics).to(dev)
+        self.sac = SAC(obs_dim, act_dim, config.sac).to(dev)
+        self.sac.set_obs_normalizer(norm.mean, norm.std)
+        self.dice = None
+        if config.algorithm == "drop":
+            self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice, config.sac.gamma).to(dev)
+            self.dice.norm.set(norm.mean, norm.std)
+        self.termination = self.spec.termination
+        capacity = config.rollout.batch_size * config.horizon * config.rollout.retain_epochs
+        self.model_buffer = ReplayBuffer(capacity, obs_dim, act_dim, dev)
+
+        self.epoch, self.step_in_epoch, self.global_step = 0, 0, 0
+        self.epoch_started = False  # DICE and rollouts of the current epoch are done
+        self.evaluations: list[dict] = []
+        self.dynamics_report: DynamicsReport | None = None
+        self.metric_sums: dict[str, torch.Tensor] = {}
+        self.metric_count = 0
+        self.timings: dict[str, float] = defaultdict(float)
+
+    # ---------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        rng = {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state, "python": random.getstate()}
+        if self.device.type == "cuda":
+            rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "config": self.cfg.model_dump(mode="json"),
+            "epoch": self.epoch, "step_in_epoch": self.step_in_epoch, "global_step": self.global_step,
+            "epoch_started": self.epoch_started,
+            "dynamics": self.model.state_dict(),
+            "dynamics_report": asdict(self.dynamics_report) if self.dynamics_report else None,
+            "sac": self.sac.state_dict(), "sac_optim": self.sac.optim_state(),
+            "dice": self.dice.state_dict() if self.dice else None,
+            "dice_optim": self.dice.optim_state() if self.dice else None,
+            "model_buffer": self.model_buffer.state_dict(),
+            "evaluations": self.evaluations,
+            "metric_sums": self.metric_sums, "metric_count": self.metric_count,
+            "rng": rng,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"checkpoint format {state.get('format')} is not {CHECKPOINT_FORMAT}")
+        self.epoch, self.step_in_epoch, self.global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
+        self.epoch_started = state["epoch_started"]
+        self.model.load_state_dict(state["dynamics"])
+        self.dynamics_report = DynamicsReport(**state["dynamics_report"]) if state["dynamics_report"] else None
+        self.sac.load_state_dict(state["sac"])
+        self.sac.load_optim_state(state["sac_optim"])
+        if self.dice is not None:
+            self.dice.load_state_dict(state["dice"])
+            self.dice.load_optim_state(state["dice_optim"])
+        self.model_buffer.load_state_dict(state["model_buffer"])
+        self.evaluations = list(state["evaluations"])
+        self.metric_sums, self.metric_count = dict(state["metric_sums"]), state["metric_count"]
+        rng = state["rng"]
+        torch.set_rng_state(rng["torch"])
+        self.rng.bit_generator.state = rng["numpy"]
+        random.setstate(rng["python"])
+        if "cuda" in rng and self.device.type == "cuda":
+            torch.cuda.set_rng_state(rng["cuda"], self.device)
+
+    def checkpoint(self) -> Path:
+        path = save_checkpoint(self.state_dict(), self.ckpt_dir, self.epoch, self.step_in_epoch, self.cfg.keep_checkpoints)
+        self.cb.on_checkpoint(path, self.epoch, self.step_in_epoch)
+        return path
+
+    # ---------------------------------------------------------------- phases
+    def train_dynamics(self) -> bool:
+        """Fit the ensemble; False if the caller stopped it (nothing is checkpointed then)."""
+        total = self.cfg.dynamics.max_epochs or 0
+
+        def on_epoch(epoch: int, holdout: float) -> bool:
+            self.cb.on_progress("dynamics", 0, epoch, total)
+            self.cb.on_metrics({"dynamics/holdout_mse": holdout}, -epoch)
+            return self.cb.should_stop()
+
+        start = time.perf_counter()
+        report = train_dynamics(self.model, self.data, self.cfg.dynamics, self.rng, self.device, on_epoch)
+        self.timings["dynamics"] += time.perf_counter() - start
+        if report.stopped_by == "cancelled":
+            return False
+        self.dynamics_report = report
+        self.cb.on_metrics({"dynamics/elite_holdout_mse": float(np.mean(sorted(report.holdout_mse)[: len(report.elites)])),
+                            "dynamics/epochs": float(report.epochs)}, 0)
+        return True
+
+    def train_dice(self, steps: int) -> dict[str, torch.Tensor]:
+        cfg, model, actor, dice = self.cfg.dice, self.model, self.sac.actor, self.dice
+        out: dict[str, torch.Tensor] = {}
+        elites = model.elites
+        for _ in range(steps):
+            obs, act, _, _, _ = self.real.sample(cfg.batch_size)
+            obs0 = self.real.sample(cfg.batch_size)[0]
+            with torch.no_grad():
+                mean, _ = model(obs, act)
+                next_obs = obs + mean[elites, :, 1:]
+                next_act = actor.act(next_obs)
+                act0 = actor.act(obs0)
+                not_done = (~self.termination(obs, act, next_obs)).float()
+            out = dice.update(obs, act, next_obs, next_act, obs0, act0, not_done)
+        return out
+
+    def sac_batch(self) -> tuple[torch.Tensor, ...]:
+        n = self.cfg.sac.batch_size
+        n_real = int(round(n * self.cfg.sac.real_ratio)) if len(self.model_buffer) else n
+        real = self.real.sample(n_real)
+        if n_real == n:
+            return real
+        fake = self.model_buffer.sample(n - n_real)
+        return tuple(torch.cat([a, b]) for a, b in zip(real, fake))
+
+    def _accumulate(self, metrics: dict[str, torch.Tensor]) -> None:
+        for k, v in metrics.items():
+            self.metric_sums[k] = self.metric_sums.get(k, 0.0) + v
+        self.metric_count += 1
+
+    def _flush_metrics(self) -> None:
+        if self.metric_count:
+            values = torch.stack(list(self.metric_sums.values())).cpu() / self.metric_count
+            self.cb.on_metrics(dict(zip(self.metric_sums, values.tolist())), self.global_step)
+        self.metric_sums, self.metric_count = {}, 0
+
+    def evaluate_now(self) -> dict:
+        actor, dev = self.sac.actor, self.device
+
+        def policy(obs: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                return actor.act(torch.as_tensor(obs, device=dev), deterministic=True).cpu().numpy()
+
+        start = time.perf_counter()
+        result = evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + self.epoch,
+                          version=self.cfg.env_version)
+        self.timings["evaluate"] += time.perf_counter() - start
+        record = {"epoch": self.epoch, "step": self.global_step, "return": result.mean_return,
+                  "return_std": result.std_return, "normalized_score": result.normalized_score}
+        self.evaluations.append(record)
+        self.cb.on_evaluation(self.epoch, result.mean_return, result.normalized_score)
+        return record
+
+    def _timed(self, name: str, fn, *args):
+        start = time.perf_counter()
+        out = fn(*args)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.timings[name] += time.perf_counter() - start
+        return out
+
+    def _start_epoch(self) -> None:
+        cfg = self.cfg
+        stats: dict[str, torch.Tensor] = {}
+        if self.dice is not None:
+            steps = cfg.dice.pretrain_steps if self.epoch == 0 else cfg.dice.steps_per_epoch
+            stats.update(self._timed("dice", self.train_dice, steps))
+        starts = self.real.sample(cfg.rollout.batch_size)[0]
+        stats.update(self._timed("rollout", model_rollout, self.sac.actor, self.model, self.dice, starts, cfg.horizon,
+                                 cfg.algorithm, cfg.penalty, self.termination, self.model_buffer))
+        values = torch.stack([v.float() for v in stats.values()]).cpu().tolist()
+        self.cb.on_metrics(dict(zip(stats, values)), self.global_step)
+
+    def _sac_steps(self) -> bool:
+        """Run the rest of this epoch's SAC updates; False if stopped at a step boundary."""
+        cfg = self.cfg
+        total = cfg.epochs * cfg.steps_per_epoch
+        start = time.perf_counter()
+        try:
+            while self.step_in_epoch < cfg.steps_per_epoch:
+                if self.cb.should_stop():
+                    return False
+                self._accumulate(self.sac.update(*self.sac_batch()))
+                self.step_in_epoch += 1
+                self.global_step += 1
+                if self.global_step % cfg.log_every == 0:
+                    self._flush_metrics()
+                    self.cb.on_progress("train", self.epoch, self.global_step, total)
+            return True
+        finally:
+            self.timings["sac"] += time.perf_counter() - start
+
+    # ---------------------------------------------------------------- the loop
+    def run(self) -> TrainResult:
+        """Train to the end, resuming from the newest checkpoint if there is one."""
+        cfg = self.cfg
+        state = load_latest(self.ckpt_dir, self.device)
+        if state is not None:
+            self.load_state_dict(state)
+        else:
+            if not self.train_dynamics():
+                return self._result("stopped")
+            self.checkpoint()
+        total = cfg.epochs * cfg.steps_per_epoch
+        while self.epoch < cfg.epochs:
+            if self.cb.should_stop():
+                self.checkpoint()
+                return self._result("stopped")
+            epoch_start = time.perf_counter()
+            if not self.epoch_started:
+                self._start_epoch()
+                self.epoch_started = True
+            if not self._sac_steps():
+                self.checkpoint()
+                return self._result("stopped")
+            self._flush_metrics()
+            self.epoch += 1
+            self.step_in_epoch, self.epoch_started = 0, False
+            self.cb.on_progress("train", self.epoch, self.global_step, total)
+            if self.epoch % cfg.eval_every == 0 or self.epoch == cfg.epochs:
+                self.evaluate_now()
+            self.timings["epochs"] += time.perf_counter() - epoch_start
+            if self.epoch % cfg.checkpoint_every == 0 or self.epoch == cfg.epochs:
+                self.checkpoint()
+        self.cb.on_progress("export", self.epoch, 0, 1)
+        policy = self.export()
+        self.cb.on_progress("export", self.epoch, 1, 1)
+        return self._result("completed", policy)
+
+    def export(self) -> dict[str, str]:
+        last = self.evaluations[-1] if self.evaluations else {}
+        metadata = {
+            "env": self.cfg.env, "gym_id": self.spec.gym_id(self.cfg.env_version),
+            "obs_dim": self.data.obs_dim, "act_dim": self.data.act_dim, "algorithm": self.cfg.algorithm,
+            "config": self.cfg.model_dump(mode="json"), "epochs": self.epoch,
+            "last_return": last.get("return"), "last_score": last.get("normalized_score"),
+            "best_score": max((e["normalized_score"] for e in self.evaluations), default=None),
+        }
+        return {k: str(v) for k, v in export_policy(self.sac.actor, self.out / "policy", metadata).items()}
+
+    def _result(self, status: str, policy: dict[str, str] | None = None) -> TrainResult:
+        last = self.evaluations[-1] if self.evaluations else None
+        return TrainResult(
+            status=status, epochs=self.epoch, global_step=self.global_step,
+            last_return=last["return"] if last else None, last_score=last["normalized_score"] if last else None,
+            best_score=max((e["normalized_score"] for e in self.evaluations), default=None),
+            evaluations=list(self.evaluations), policy=policy,
+            dynamics=asdict(self.dynamics_report) if self.dynamics_report else None, timings=dict(self.timings),
+        )
+
+
+def train(dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path, callback: Callback | None = None) -> TrainResult:
+    """The engine's entry point for the service and the CLI."""
+    return Trainer(dataset, config, out_dir, callback).run()
