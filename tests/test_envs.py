@@ -1,0 +1,47 @@
+"""Termination functions must agree with the real gymnasium envs; scores follow D4RL's normalisation."""
+import numpy as np
+import pytest
+import torch
+
+from drop_engine.collect import collect_transitions, random_policy
+from drop_engine.envs import ENVS, get_env, termination_fn
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "halfcheetah"])
+@pytest.mark.parametrize("version", ["v4", "v5"])
+def test_termination_matches_env(env, version):
+    spec = get_env(env)
+    arrays = collect_transitions(env, random_policy(spec.act_dim, seed=1), 3000, seed=1, version=version)
+    predicted = spec.termination(*(torch.as_tensor(arrays[k]) for k in ("observations", "actions", "next_observations")))
+    assert np.array_equal(predicted.numpy(), arrays["terminals"])
+    if env != "halfcheetah":  # a random policy falls often, so both outcomes are exercised
+        assert arrays["terminals"].sum() > 20
+
+
+def test_hopper_termination_edge_cases():
+    done = get_env("hopper").termination
+    ok = torch.tensor([1.2, 0.0] + [0.0] * 9)
+    cases = {
+        "healthy": (ok, False),
+        "low": (torch.tensor([0.7, 0.0] + [0.0] * 9), True),
+        "tilted": (torch.tensor([1.2, 0.2] + [0.0] * 9), True),
+        "fast": (torch.tensor([1.2, 0.0] + [0.0] * 8 + [100.0]), True),
+        "nan": (torch.tensor([1.2, float("nan")] + [0.0] * 9), True),
+    }
+    for name, (obs, expected) in cases.items():
+        assert bool(done(ok, torch.zeros(3), obs)) is expected, name
+
+
+def test_normalized_score_endpoints():
+    for spec in ENVS.values():
+        assert spec.normalized_score(spec.random_score) == pytest.approx(0.0)
+        assert spec.normalized_score(spec.expert_score) == pytest.approx(100.0)
+    assert get_env("Hopper-v5").gym_id("v5") == "Hopper-v5"
+    with pytest.raises(KeyError):
+        get_env("ant")
+
+
+def test_unknown_env_never_terminates_with_warning():
+    with pytest.warns(UserWarning):
+        fn = termination_fn("ant")
+    assert not fn(torch.zeros(4, 2), torch.zeros(4, 1), torch.full((4, 2), 1e9)).any()
