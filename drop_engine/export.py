@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import json
+import warnings
 from pathlib import Path
 
 import torch
@@ -31,7 +32,9 @@ def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str
     out.mkdir(parents=True, exist_ok=True)
     policy = DeterministicPolicy(copy.deepcopy(actor).cpu()).eval()
     paths = {"torchscript": out / "policy.pt", "state_dict": out / "policy_state_dict.pt", "metadata": out / "metadata.json"}
-    scripted = torch.jit.script(policy)
+    with warnings.catch_warnings():  # TorchScript is deprecated upstream but is still the one torch-only format
+        warnings.simplefilter("ignore", DeprecationWarning)
+        scripted = torch.jit.script(policy)
     tmp = paths["torchscript"].with_suffix(".tmp")
     scripted.save(str(tmp))
     tmp.replace(paths["torchscript"])

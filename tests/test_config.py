@@ -1,0 +1,39 @@
+"""Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
+import pytest
+
+from drop_engine.config import ConfigError, build_config
+
+
+def test_paper_preset_uses_official_dataset_settings():
+    cfg = build_config("drop", "walker2d", "paper", task="medium-replay")
+    assert cfg.epochs == 3000 and cfg.rollout.horizon == 1
+    assert cfg.penalty.eta == 2.0 and cfg.penalty.clip == (0.01, 50.0)
+    assert cfg.dice.steps_per_epoch == 600 and cfg.sac.target_entropy == -3.0
+    mopo = build_config("mopo", "halfcheetah", "paper", task="medium")
+    assert mopo.horizon == 1 and mopo.penalty.mopo_lambda == 1.0
+
+
+def test_overrides_apply_last_and_nest():
+    cfg = build_config("drop", "hopper", "cpu", task="medium", overrides={"dice.lr": 1e-3, "epochs": 7,
+                                                                          "penalty": {"g": "tanh"}})
+    assert cfg.dice.lr == 1e-3 and cfg.epochs == 7 and cfg.penalty.g == "tanh" and cfg.penalty.eta == 5.0
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"dice.learning_rate": 1}, "dice.learning_rate: Extra inputs are not permitted"),
+    ({"epochs": 0}, "epochs: Input should be greater than or equal to 1"),
+    ({"penalty.g": "cube"}, "penalty.g: Input should be 'log', 'tanh' or 'tanh_shift'"),
+    ({"dynamics.elites": 9}, "elites (9) cannot exceed members (7)"),
+    ({"sac.gamma": "high"}, "sac.gamma: Input should be a valid number"),
+])
+def test_bad_overrides_name_the_field(overrides, message):
+    with pytest.raises(ConfigError) as info:
+        build_config("drop", "hopper", "cpu", overrides=overrides)
+    assert message in str(info.value)
+
+
+def test_unknown_algorithm_and_preset():
+    with pytest.raises(ConfigError, match="algorithm"):
+        build_config("cql", "hopper", "cpu")
+    with pytest.raises(ConfigError, match="unknown preset 'huge'"):
+        build_config("drop", "hopper", "huge")

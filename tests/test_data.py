@@ -1,0 +1,111 @@
+"""Loading, validation and description of D4RL-layout datasets."""
+import h5py
+import numpy as np
+import pytest
+
+from drop_engine.data import DatasetError, describe, from_arrays, load_dataset, save_hdf5
+
+
+def _write(path, arrays):
+    with h5py.File(path, "w") as f:
+        for k, v in arrays.items():
+            f.create_dataset(k, data=v)
+    return path
+
+
+def test_hdf5_round_trip_and_report(tmp_path, hopper_arrays):
+    path = tmp_path / "d.hdf5"
+    save_hdf5(path, hopper_arrays, {"env_name": "Hopper-v4"})
+    data = load_dataset(path, env="hopper")
+    assert len(data) == len(hopper_arrays["observations"])
+    np.testing.assert_array_equal(data.next_observations, hopper_arrays["next_observations"])
+    report = describe(data)
+    assert report.env == "hopper" and report.obs_dim == 11 and report.act_dim == 3
+    assert report.terminals == int(hopper_arrays["terminals"].sum())
+    assert report.timeouts == int(hopper_arrays["timeouts"].sum())
+    assert report.episodes == report.terminals + report.timeouts
+    assert report.reward_min <= report.reward_mean <= report.reward_max
+
+
+def test_npz_loads_like_hdf5(tmp_path, hopper_arrays):
+    path = tmp_path / "d.npz"
+    np.savez(path, **{k: v for k, v in hopper_arrays.items() if "/" not in k})
+    assert len(load_dataset(path, env="hopper")) == len(hopper_arrays["observations"])
+
+
+def test_timeouts_are_not_terminals(hopper_arrays):
+    arrays = dict(hopper_arrays)
+    arrays["timeouts"] = np.zeros_like(arrays["timeouts"])
+    arrays["timeouts"][10] = True
+    data = from_arrays(arrays)
+    assert data.timeouts[10] and not data.terminals[10]
+
+
+def test_rebuilds_next_observations():
+    obs = np.arange(12, dtype=np.float32).reshape(6, 2)
+    arrays = {"observations": obs, "actions": np.zeros((6, 1)), "rewards": np.arange(6.0),
+              "terminals": np.array([0, 0, 1, 0, 0, 0]), "timeouts": np.zeros(6)}
+    data = from_arrays(arrays)
+    # Row 2 (terminal) and row 5 (file end) have no successor in the file and are dropped.
+    np.testing.assert_array_equal(data.observations, obs[[0, 1, 3, 4]])
+    np.testing.assert_array_equal(data.next_observations, obs[[1, 2, 4, 5]])
+    assert data.timeouts.tolist() == [False, True, False, True]
+    assert any("rebuilt" in w for w in data.warnings)
+
+
+def _base():
+    return {"observations": np.zeros((5, 11), np.float32), "actions": np.zeros((5, 3), np.float32),
+            "rewards": np.zeros(5, np.float32), "next_observations": np.zeros((5, 11), np.float32),
+            "terminals": np.zeros(5, bool), "timeouts": np.zeros(5, bool)}
+
+
+def _without(key):
+    a = _base()
+    del a[key]
+    return a
+
+
+def _with(key, value):
+    a = _base()
+    a[key] = value
+    return a
+
+
+def _nan():
+    a = _base()
+    a["observations"][2, 3] = np.nan
+    return a
+
+
+@pytest.mark.parametrize("arrays, env, message", [
+    (_without("actions"), None, "actions: missing"),
+    (_without("rewards"), None, "rewards: missing"),
+    (_with("actions", np.zeros((4, 3))), None, "actions: has 4 rows but observations has 5"),
+    (_with("terminals", np.zeros(6)), None, "terminals: has 6 rows"),
+    (_nan(), None, "observations: 1 rows contain NaN or inf"),
+    (_with("rewards", np.array([0, 0, np.inf, 0, 0])), None, "rewards: 1 rows contain NaN or inf"),
+    (_with("terminals", np.array([0, 2, 0, 0, 0])), None, "terminals: must hold only 0/1"),
+    (_with("observations", np.zeros((0, 11))), None, "observations: dataset is empty"),
+    (_with("observations", np.array(["a"] * 5)), None, "observations: must be numeric"),
+    (_with("next_observations", np.zeros((5, 10))), None, "next_observations: shape (5, 10) differs"),
+    (_base(), "walker2d", "do not match walker2d (17, 6)"),
+])
+def test_bad_datasets_raise_clear_errors(arrays, env, message):
+    with pytest.raises(DatasetError, match=None) as info:
+        from_arrays(arrays, env=env)
+    assert message in str(info.value)
+
+
+def test_bad_files(tmp_path):
+    truncated = tmp_path / "t.hdf5"
+    save_hdf5(truncated, _base())
+    truncated.write_bytes(truncated.read_bytes()[:200])
+    for path, message in [(tmp_path / "missing.hdf5", "does not exist"), (truncated, "not a readable HDF5 file")]:
+        with pytest.raises(DatasetError) as info:
+            load_dataset(path)
+        assert message in str(info.value)
+    grouped = tmp_path / "g.hdf5"
+    with h5py.File(grouped, "w") as f:
+        f.create_group("observations")
+    with pytest.raises(DatasetError, match="observations: expected an array"):
+        load_dataset(grouped)

@@ -1,0 +1,28 @@
+"""SAC must learn a one-step continuous task whose optimum is known: a*(s) = 0.5 s."""
+import torch
+
+from drop_engine.config import SACConfig
+from drop_engine.sac import SAC
+
+
+def test_sac_learns_known_optimum():
+    torch.manual_seed(0)
+    sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3))
+    for _ in range(1500):
+        s = torch.rand(128, 1) * 2 - 1
+        a, _ = sac.actor.sample(s)
+        a = a.detach()
+        r = -(a[:, 0] - 0.5 * s[:, 0]).pow(2) * 10
+        sac.update(s, a, r, s, torch.ones(128))  # every episode ends after one step
+    s = torch.linspace(-1, 1, 21)[:, None]
+    with torch.no_grad():
+        act = sac.actor.act(s, deterministic=True)
+    err = (act - 0.5 * s).abs().max().item()
+    assert err < 0.1, err
+    # The temperature was tuned towards the target entropy, not left at its start.
+    assert sac.log_alpha.item() < -0.25
+
+
+def test_target_entropy_default_and_override():
+    assert SAC(3, 4, SACConfig()).target_entropy == -4.0
+    assert SAC(3, 4, SACConfig(target_entropy=-3.0)).target_entropy == -3.0

@@ -1,0 +1,103 @@
+"""Smoke runs of all three algorithms, exact stop-and-resume, and an exported policy that needs only torch."""
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from drop_engine.callbacks import Callback
+from drop_engine.checkpoint import list_checkpoints
+from drop_engine.config import build_config
+from drop_engine.trainer import Trainer, train
+
+
+class Recorder(Callback):
+    def __init__(self, stop_after: int | None = None):
+        self.metrics, self.evaluations, self.checkpoints, self.phases = [], [], [], set()
+        self.asked, self.stop_after = 0, stop_after
+
+    def on_progress(self, phase, epoch, step, total):
+        self.phases.add(phase)
+
+    def on_metrics(self, metrics, step):
+        self.metrics.append((step, dict(metrics)))
+
+    def on_evaluation(self, epoch, mean_return, normalized_score):
+        self.evaluations.append((epoch, mean_return, normalized_score))
+
+    def on_checkpoint(self, path, epoch, step):
+        self.checkpoints.append(path)
+
+    def should_stop(self):
+        self.asked += 1
+        return self.stop_after is not None and self.asked > self.stop_after
+
+
+def _config(algorithm, **overrides):
+    return build_config(algorithm, "hopper", "smoke", task="medium", overrides=overrides)
+
+
+@pytest.mark.parametrize("algorithm", ["drop", "mopo", "mbpo"])
+def test_smoke_run_writes_checkpoints_metrics_and_policy(tmp_path, hopper_dataset, algorithm):
+    rec = Recorder()
+    result = train(hopper_dataset, _config(algorithm), tmp_path, rec)
+    assert result.status == "completed" and result.epochs == 2
+    assert list_checkpoints(tmp_path / "checkpoints") and all(p.exists() for p in rec.checkpoints[-1:])
+    names = {name for _, m in rec.metrics for name in m}
+    expected = {"sac/critic_loss", "sac/actor_loss", "sac/alpha", "sac/q_mean", "rollout/penalty_mean",
+                "rollout/model_buffer_size", "dynamics/holdout_mse"}
+    if algorithm == "drop":
+        expected |= {"dice/objective", "dice/tau_mean", "dice/tau_min", "dice/tau_max"}
+    assert expected <= names
+    penalties = [m["rollout/penalty_mean"] for _, m in rec.metrics if "rollout/penalty_mean" in m]
+    assert (all(p == 0 for p in penalties)) is (algorithm == "mbpo")
+    assert [e[0] for e in rec.evaluations] == [1, 2]
+    assert {"dynamics", "train", "export"} <= rec.phases
+
+    meta = json.loads((tmp_path / "policy" / "metadata.json").read_text())
+    assert meta["algorithm"] == algorithm and meta["obs_dim"] == 11
+    # The TorchScript policy loads with drop_engine made unimportable, and maps a batch to bounded actions.
+    script = (
+        "import sys, torch; sys.modules['drop_engine'] = None\n"
+        f"m = torch.jit.load({str(result.policy['torchscript'])!r})\n"
+        "a = m(torch.randn(5, 11)); assert a.shape == (5, 3) and a.abs().max() <= 1; print(a.sum().item())"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    state = torch.load(result.policy["state_dict"])
+    assert any(k.startswith("norm.") for k in state)
+
+
+def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
+    cfg = _config("drop", epochs=3)
+    whole = Recorder()
+    a = Trainer(hopper_dataset, cfg, tmp_path / "a", whole)
+    result_a = a.run()
+
+    first = Recorder(stop_after=35)  # mid-way through epoch 2's SAC steps
+    b1 = Trainer(hopper_dataset, cfg, tmp_path / "b", first)
+    assert b1.run().status == "stopped"
+    assert b1.epoch == 1 and 0 < b1.step_in_epoch < cfg.steps_per_epoch
+    second = Recorder()
+    b2 = Trainer(hopper_dataset, cfg, tmp_path / "b", second)
+    result_b = b2.run()
+
+    assert result_b.status == "completed"
+    for (name, pa), pb in zip(a.sac.state_dict().items(), b2.sac.state_dict().values()):
+        assert torch.equal(pa, pb), name
+    assert result_a.evaluations == result_b.evaluations
+    assert whole.metrics == first.metrics + second.metrics  # one continuous history, nothing repeated
+
+
+def test_stop_during_dynamics_leaves_no_checkpoint(tmp_path, hopper_dataset):
+    result = train(hopper_dataset, _config("mopo"), tmp_path, Recorder(stop_after=0))
+    assert result.status == "stopped" and result.epochs == 0
+    assert not list_checkpoints(tmp_path / "checkpoints")
+
+
+def test_same_seed_same_numbers(tmp_path, hopper_dataset):
+    runs = [train(hopper_dataset, _config("mopo", epochs=1), tmp_path / str(i), Recorder()) for i in range(2)]
+    assert runs[0].evaluations == runs[1].evaluations
+    other = train(hopper_dataset, _config("mopo", epochs=1).model_copy(update={"seed": 1}), tmp_path / "s1", Recorder())
+    assert other.dynamics["holdout_mse"] != runs[0].dynamics["holdout_mse"]
