@@ -1,0 +1,1 @@
+"""drop-rl service: the HTTP API in front of drop_engine (datasets, jobs, policies)."""

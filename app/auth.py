@@ -1,0 +1,64 @@
+"""Bearer tokens, stored as SHA-256 hashes; every request resolves to one owner whose objects it may see."""
+from __future__ import annotations
+
+import hashlib
+import secrets
+
+from fastapi import Request
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from .ids import new_id
+from .models import Owner, Token
+from .problems import Problem
+
+LOCAL_OWNER = "local"
+
+
+def hash_token(token: str) -> str:
+    # Tokens are 256 random bits, so a plain fast hash is enough: there is nothing to brute-force.
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def get_or_create_owner(session: Session, name: str) -> Owner:
+    owner = session.scalar(select(Owner).where(Owner.name == name))
+    if owner is None:
+        owner = Owner(id=new_id("own"), name=name)
+        session.add(owner)
+        session.flush()
+    return owner
+
+
+def create_token(factory: sessionmaker[Session], name: str) -> str:
+    """A new token for owner `name` (created if needed); only its hash is kept."""
+    token = "drop_" + secrets.token_urlsafe(32)
+    with factory() as session, session.begin():
+        owner = get_or_create_owner(session, name)
+        session.add(Token(id=new_id("tok"), owner_id=owner.id, name=name, token_hash=hash_token(token)))
+    return token
+
+
+def _unauthorized(detail: str) -> Problem:
+    return Problem(401, "unauthorized", detail)
+
+
+def current_owner(request: Request) -> str:
+    """FastAPI dependency: the owner id of this request."""
+    state = request.app.state
+    factory = state.sessions
+    if state.settings.auth_disabled:
+        owner_id = getattr(state, "local_owner_id", None)
+        if owner_id is None:
+            with factory() as session, session.begin():
+                owner_id = get_or_create_owner(session, LOCAL_OWNER).id
+            state.local_owner_id = owner_id
+        return owner_id
+    header = request.headers.get("authorization", "")
+    scheme, _, token = header.partition(" ")
+    if scheme.lower() != "bearer" or not token.strip():
+        raise _unauthorized("send `Authorization: Bearer <token>`; create one with `drop token create --name NAME`")
+    with factory() as session:
+        row = session.scalar(select(Token).where(Token.token_hash == hash_token(token.strip()), Token.revoked_at.is_(None)))
+    if row is None:
+        raise _unauthorized("unknown or revoked token")
+    return row.owner_id

@@ -1,0 +1,149 @@
+"""`drop`: the engine's commands (train, evaluate) plus the service's: serve, api, worker, token create, db upgrade."""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+
+from drop_engine.cli import build_parser as engine_parser
+
+
+def _settings():
+    from .settings import get_settings
+
+    get_settings.cache_clear()
+    return get_settings()
+
+
+def _check_migrated(settings) -> bool:
+    from .db import make_engine, schema_problem
+
+    engine = make_engine(settings.sqlalchemy_url)
+    try:
+        reason = schema_problem(engine)
+    finally:
+        engine.dispose()
+    if reason:
+        print(f"drop: {reason}", file=sys.stderr)
+        return False
+    return True
+
+
+def cmd_db_upgrade(args: argparse.Namespace) -> int:
+    from .db import upgrade
+
+    settings = _settings()
+    settings.ensure_dirs()
+    upgrade(settings.sqlalchemy_url)
+    print("database is at the newest migration")
+    return 0
+
+
+def cmd_token_create(args: argparse.Namespace) -> int:
+    from .auth import create_token
+    from .db import make_engine, make_sessionmaker
+
+    settings = _settings()
+    if not _check_migrated(settings):
+        return 2
+    engine = make_engine(settings.sqlalchemy_url)
+    print(create_token(make_sessionmaker(engine), args.name))
+    engine.dispose()
+    return 0
+
+
+def _run_api(host: str, port: int) -> int:
+    import uvicorn
+
+    from .main import NotMigrated, create_app
+
+    try:
+        app = create_app(_settings())
+    except NotMigrated as exc:
+        print(f"drop: {exc}", file=sys.stderr)
+        return 2
+    uvicorn.run(app, host=host, port=port, log_level="info")
+    return 0
+
+
+def cmd_api(args: argparse.Namespace) -> int:
+    return _run_api(args.host, args.port)
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    settings = _settings()
+    settings.ensure_dirs()
+    if not _check_migrated(settings):
+        return 2
+    from worker.tasks import celery
+
+    concurrency = args.concurrency or settings.worker_concurrency
+    celery.worker_main(["worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
+                        "--without-gossip", "--without-mingle", "--without-heartbeat",
+                        "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel])
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Embedded single-machine mode: migrate, start one worker process, then serve the API in this one."""
+    if not args.auth:
+        os.environ["DROP_AUTH_DISABLED"] = "true"
+    code = cmd_db_upgrade(args)
+    if code:
+        return code
+    settings = _settings()
+    print(f"drop serve: data in {settings.data_dir.resolve()}, auth {'off' if settings.auth_disabled else 'on'}, "
+          f"API on http://{args.host}:{args.port}", flush=True)
+    worker = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--loglevel", "WARNING"], env=os.environ.copy())
+    try:
+        return _run_api(args.host, args.port)
+    finally:
+        worker.send_signal(signal.SIGTERM)
+        try:
+            worker.wait(30)
+        except subprocess.TimeoutExpired:
+            worker.kill()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = engine_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+    p = sub.add_parser("serve", help="API and one worker on this machine (SQLite, filesystem broker, no auth)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--auth", action="store_true", help="require bearer tokens even in embedded mode")
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("api", help="the HTTP API alone (production: DROP_DATABASE_URL, DROP_BROKER_URL)")
+    p.add_argument("--host", default="0.0.0.0")
+    p.add_argument("--port", type=int, default=8000)
+    p.set_defaults(func=cmd_api)
+
+    p = sub.add_parser("worker", help="a Celery worker that runs training jobs")
+    p.add_argument("--concurrency", type=int, default=None, help="jobs at once (default DROP_WORKER_CONCURRENCY)")
+    p.add_argument("--loglevel", default="INFO")
+    p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("token", help="API tokens")
+    tsub = p.add_subparsers(dest="token_command", required=True)
+    t = tsub.add_parser("create", help="create a token for an owner (created if new) and print it once")
+    t.add_argument("--name", required=True)
+    t.set_defaults(func=cmd_token_create)
+
+    p = sub.add_parser("db", help="database")
+    dsub = p.add_subparsers(dest="db_command", required=True)
+    d = dsub.add_parser("upgrade", help="apply migrations up to the newest")
+    d.set_defaults(func=cmd_db_upgrade)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,41 @@
+"""Request-scoped dependencies: settings, a database session, the owner, and owner-scoped lookups (404 otherwise)."""
+from __future__ import annotations
+
+from typing import Iterator
+
+from fastapi import Depends, Request
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from .auth import current_owner
+from .models import Dataset, Job
+from .problems import Problem
+from .settings import Settings
+
+
+def settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def session(request: Request) -> Iterator[Session]:
+    with request.app.state.sessions() as s:
+        yield s
+
+
+def owned_dataset(s: Session, owner_id: str, dataset_id: str) -> Dataset:
+    row = s.scalar(select(Dataset).where(Dataset.id == dataset_id, Dataset.owner_id == owner_id))
+    if row is None:
+        raise Problem(404, "not_found", f"dataset {dataset_id} not found")
+    return row
+
+
+def owned_job(s: Session, owner_id: str, job_id: str) -> Job:
+    row = s.scalar(select(Job).where(Job.id == job_id, Job.owner_id == owner_id))
+    if row is None:
+        raise Problem(404, "not_found", f"job {job_id} not found")
+    return row
+
+
+Owner = Depends(current_owner)
+DB = Depends(session)
+Config = Depends(settings)

@@ -1,0 +1,67 @@
+"""Turn a job request into a validated engine config, or a 422 that names the bad field."""
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from .models import Dataset
+from .problems import Problem
+
+# Identity fields are job fields, and the device and threads belong to the worker: not overridable.
+ALGORITHMS = ("drop", "mopo", "mbpo")
+RESERVED_OVERRIDES = {"algorithm", "env", "preset", "seed", "device", "task", "threads"}
+
+
+class JobRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    dataset_id: str
+    algorithm: str = Field("drop", description="drop | mopo | mbpo")
+    env: str | None = Field(None, description="hopper | walker2d | halfcheetah; default: the env the dataset matches")
+    preset: str = Field("cpu", description="paper | cpu | smoke")
+    task: str | None = Field(None, description="dataset kind (random, medium, ...) selecting the paper's settings")
+    overrides: dict[str, Any] = Field(default_factory=dict, description='dotted keys, e.g. {"epochs": 50}')
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    max_runtime_s: int | None = Field(None, ge=60, le=30 * 24 * 3600)
+
+
+def _invalid(code: str, detail: str, field: str) -> Problem:
+    return Problem(422, code, detail, errors=[{"field": field, "message": detail}])
+
+
+def build(req: JobRequest, dataset: Dataset) -> tuple[str, dict]:
+    """(env name, config as JSON) for this request on this dataset."""
+    from drop_engine.config import ConfigError, build_config
+    from drop_engine.envs import get_env
+
+    from drop_engine.config import PRESETS
+
+    if req.algorithm not in ALGORITHMS:
+        raise _invalid("unknown_algorithm", f"algorithm: {req.algorithm!r} is not one of {', '.join(ALGORITHMS)}",
+                       "algorithm")
+    if req.preset not in PRESETS:
+        raise _invalid("unknown_preset", f"preset: {req.preset!r} is not one of {', '.join(PRESETS)}", "preset")
+    env_name = req.env or dataset.env
+    if env_name is None:
+        candidates = ", ".join(dataset.report.get("env_candidates") or []) or "none"
+        raise _invalid("env_required", f"env: the dataset matches no single env (candidates: {candidates}); set env",
+                       "env")
+    try:
+        spec = get_env(env_name)
+    except KeyError as exc:
+        raise _invalid("unknown_env", f"env: {exc.args[0]}", "env") from None
+    if (spec.obs_dim, spec.act_dim) != (dataset.obs_dim, dataset.act_dim):
+        raise _invalid("env_mismatch", f"env: {spec.name} has (obs, act) dims ({spec.obs_dim}, {spec.act_dim}) but "
+                       f"dataset {dataset.id} has ({dataset.obs_dim}, {dataset.act_dim})", "env")
+    bad = sorted(k for k in req.overrides if str(k).split(".")[0] in RESERVED_OVERRIDES)
+    if bad:
+        raise _invalid("invalid_override", f"overrides: {', '.join(bad)} cannot be overridden; use the job fields",
+                       "overrides")
+    try:
+        config = build_config(req.algorithm, spec.name, req.preset, req.task, req.overrides, req.seed, "cpu")
+    except ConfigError as exc:
+        message = str(exc)
+        field = message.split(":", 1)[0] if ":" in message else "overrides"
+        raise _invalid("invalid_config", message, field) from None
+    return spec.name, config.model_dump(mode="json")

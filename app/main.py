@@ -1,0 +1,39 @@
+"""The FastAPI application factory; refuses to start on a database that is not at the newest migration."""
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI
+
+from . import problems
+from .db import make_engine, make_sessionmaker, schema_problem
+from .routers import datasets, health, jobs, outputs
+from .settings import Settings, get_settings
+
+log = logging.getLogger("drop.api")
+
+
+class NotMigrated(RuntimeError):
+    pass
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    from worker.celery_app import enqueue, make_celery
+
+    settings = settings or get_settings()
+    settings.ensure_dirs()
+    engine = make_engine(settings.sqlalchemy_url)
+    reason = schema_problem(engine)
+    if reason:
+        engine.dispose()
+        raise NotMigrated(reason)
+    app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)")
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessions = make_sessionmaker(engine)
+    app.state.celery = make_celery(settings)
+    app.state.enqueue = lambda job_id, runtime: enqueue(app.state.celery, settings, job_id, runtime)
+    problems.install(app)
+    for router in (health.router, datasets.router, jobs.router, outputs.router):
+        app.include_router(router)
+    return app

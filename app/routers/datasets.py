@@ -1,0 +1,73 @@
+"""Datasets: streamed upload, validation in a limited subprocess, list, get, delete."""
+from __future__ import annotations
+
+from fastapi import APIRouter, Query, Request, Response
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from .. import serialize
+from ..deps import DB, Config, Owner, owned_dataset
+from ..ids import new_id
+from ..models import ACTIVE_STATUSES, Dataset, Job
+from ..problems import Problem
+from ..settings import Settings
+from ..storage import dataset_dir, remove_tree, upload_dir
+from ..upload import receive
+from ..validate import Invalid, validate_file
+
+router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
+
+
+@router.post("", status_code=201, summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
+async def upload_dataset(request: Request, name: str | None = Query(None, max_length=300),
+                         owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
+    dataset_id = new_id("ds")
+    part = upload_dir(settings) / f"{dataset_id}.part"
+    upload = await receive(request, part, settings.max_upload_bytes, name)
+    target = dataset_dir(settings, dataset_id)
+    try:
+        target.mkdir(parents=True)
+        try:
+            result = await validate_file(part, target, memory=settings.validate_memory_bytes,
+                                         timeout=settings.validate_timeout_s, max_bytes=settings.max_upload_bytes)
+        except Invalid as exc:
+            raise Problem(422, "invalid_dataset", str(exc)) from None
+        report = result["report"]
+        row = Dataset(id=dataset_id, owner_id=owner, name=upload.filename, format=result["format"],
+                      sha256=upload.sha256, size_bytes=upload.size, path=str((target / result["file"]).resolve()),
+                      env=report.get("env"), obs_dim=report["obs_dim"], act_dim=report["act_dim"], report=report)
+        s.add(row)
+        s.commit()
+    except BaseException:
+        remove_tree(target)
+        raise
+    finally:
+        part.unlink(missing_ok=True)
+    return serialize.dataset(row)
+
+
+@router.get("", summary="List datasets, newest first")
+def list_datasets(after: str | None = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner,
+                  s: Session = DB) -> dict:
+    q = select(Dataset).where(Dataset.owner_id == owner)
+    if after:
+        q = q.where(Dataset.id < after)
+    rows = list(s.scalars(q.order_by(Dataset.id.desc()).limit(limit + 1)))
+    return serialize.page([serialize.dataset(r) for r in rows[:limit]], len(rows) > limit)
+
+
+@router.get("/{dataset_id}")
+def get_dataset(dataset_id: str, owner: str = Owner, s: Session = DB) -> dict:
+    return serialize.dataset(owned_dataset(s, owner, dataset_id))
+
+
+@router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset (409 while a job uses it)")
+def delete_dataset(dataset_id: str, owner: str = Owner, s: Session = DB, settings: Settings = Config) -> Response:
+    row = owned_dataset(s, owner, dataset_id)
+    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
+    if busy:
+        raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
+    s.delete(row)
+    s.commit()
+    remove_tree(dataset_dir(settings, dataset_id))
+    return Response(status_code=204)

@@ -1,0 +1,112 @@
+"""Jobs: create (idempotent), list, get, cancel."""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+
+from fastapi import APIRouter, Header, Query, Request, Response
+from sqlalchemy import select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from .. import serialize
+from ..deps import DB, Config, Owner, owned_dataset, owned_job
+from ..ids import new_id
+from ..jobcreate import JobRequest, build
+from ..models import JOB_STATUSES, Job, JobEvent, utcnow
+from ..problems import Problem
+from ..settings import Settings
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+log = logging.getLogger("drop.api")
+
+
+def _request_hash(req: JobRequest) -> str:
+    return hashlib.sha256(json.dumps(req.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
+
+
+def _replay(s: Session, owner: str, key: str, digest: str) -> Job | None:
+    row = s.scalar(select(Job).where(Job.owner_id == owner, Job.idempotency_key == key))
+    if row is not None and row.request_hash != digest:
+        raise Problem(422, "idempotency_key_reused",
+                      f"Idempotency-Key {key!r} was already used with a different request body")
+    return row
+
+
+@router.post("", status_code=201, summary="Create a training job")
+def create_job(req: JobRequest, request: Request, response: Response,
+               idempotency_key: str | None = Header(None, max_length=200),
+               owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
+    digest = _request_hash(req)
+    if idempotency_key:
+        existing = _replay(s, owner, idempotency_key, digest)
+        if existing is not None:
+            response.status_code = 200
+            return serialize.job(existing)
+    dataset = owned_dataset(s, owner, req.dataset_id)
+    env, config = build(req, dataset)
+    job = Job(id=new_id("job"), owner_id=owner, dataset_id=dataset.id, algorithm=config["algorithm"], env=env,
+              preset=config["preset"], overrides=req.overrides, seed=req.seed, config=config, status="queued",
+              max_attempts=settings.max_attempts, max_runtime_s=req.max_runtime_s or settings.max_runtime_s,
+              idempotency_key=idempotency_key, request_hash=digest)
+    try:
+        s.add(job)
+        s.add(JobEvent(job_id=job.id, type="status", message="queued", data={"status": "queued"}))
+        s.commit()
+    except IntegrityError:
+        s.rollback()
+        existing = _replay(s, owner, idempotency_key or "", digest) if idempotency_key else None
+        if existing is None:
+            raise
+        response.status_code = 200
+        return serialize.job(existing)
+    try:
+        request.app.state.enqueue(job.id, job.max_runtime_s)
+    except Exception:  # the reaper re-sends jobs never enqueued, so a broker hiccup delays the job but loses nothing
+        log.exception("could not enqueue job %s; the reaper will retry", job.id)
+    else:
+        s.execute(update(Job).where(Job.id == job.id).values(enqueued_at=utcnow()))
+        s.commit()
+    return serialize.job(job)
+
+
+@router.get("", summary="List jobs, newest first")
+def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUSES)), after: str | None = None,
+              limit: int = Query(20, ge=1, le=100), owner: str = Owner, s: Session = DB) -> dict:
+    q = select(Job).where(Job.owner_id == owner)
+    if status is not None:
+        if status not in JOB_STATUSES:
+            raise Problem(422, "validation_error", f"status: must be one of {', '.join(JOB_STATUSES)}",
+                          errors=[{"field": "status", "message": "unknown status"}])
+        q = q.where(Job.status == status)
+    if after:
+        q = q.where(Job.id < after)
+    rows = list(s.scalars(q.order_by(Job.id.desc()).limit(limit + 1)))
+    return serialize.page([serialize.job(r) for r in rows[:limit]], len(rows) > limit)
+
+
+@router.get("/{job_id}")
+def get_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+    return serialize.job(owned_job(s, owner, job_id))
+
+
+@router.post("/{job_id}/cancel", status_code=202, summary="Cancel: a queued job at once, a running one at its next step")
+def cancel_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+    owned_job(s, owner, job_id)
+    now = utcnow()
+    done = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
+                     .values(status="cancelled", finished_at=now)).rowcount
+    if done:
+        s.add(JobEvent(job_id=job_id, type="status", message="cancelled before it started",
+                       data={"status": "cancelled"}))
+    elif s.execute(update(Job).where(Job.id == job_id, Job.status == "running")
+                   .values(status="cancelling")).rowcount:
+        s.add(JobEvent(job_id=job_id, type="status", message="cancellation requested",
+                       data={"status": "cancelling"}))
+    s.commit()
+    s.expire_all()
+    job = owned_job(s, owner, job_id)
+    if job.status in ("succeeded", "failed") or (job.status == "cancelled" and not done):
+        raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status})")
+    return serialize.job(job)

@@ -1,0 +1,127 @@
+"""What a job produces: events (paged or as a server-sent event stream), metrics, evaluations, checkpoints, the
+learning curve and the trained policy."""
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, StreamingResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from .. import serialize
+from ..curve import render
+from ..deps import DB, Config, Owner, owned_job
+from ..models import FINAL_STATUSES, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from ..problems import Problem
+from ..settings import Settings
+from ..storage import job_dir
+
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
+SSE_POLL_S = 0.5
+SSE_KEEPALIVE_S = 15.0
+
+
+def _events_after(factory, job_id: str, after: int, limit: int) -> tuple[list[dict], str]:
+    from ..models import Job
+
+    with factory() as s:
+        rows = s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
+                         .order_by(JobEvent.id).limit(limit))
+        items = [serialize.event(r) for r in rows]
+        status = s.scalar(select(Job.status).where(Job.id == job_id))
+    return items, status
+
+
+async def _stream(request: Request, job_id: str, after: int):
+    factory = request.app.state.sessions
+    idle = 0.0
+    while True:
+        items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
+        for item in items:
+            after = item["id"]
+            yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
+        if items:
+            idle = 0.0
+            continue
+        if status in FINAL_STATUSES or status is None:
+            yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
+            return
+        if await request.is_disconnected():
+            return
+        await asyncio.sleep(SSE_POLL_S)
+        idle += SSE_POLL_S
+        if idle >= SSE_KEEPALIVE_S:
+            idle = 0.0
+            yield ": keep-alive\n\n"
+
+
+@router.get("/events", summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends")
+def job_events(job_id: str, request: Request, after: int = Query(0, ge=0), limit: int = Query(100, ge=1, le=1000),
+               owner: str = Owner, s: Session = DB):
+    owned_job(s, owner, job_id)
+    if "text/event-stream" in request.headers.get("accept", ""):
+        last = request.headers.get("last-event-id", "")
+        start = int(last) if last.isdigit() else after
+        return StreamingResponse(_stream(request, job_id, start), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    rows = list(s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
+                          .order_by(JobEvent.id).limit(limit + 1)))
+    return serialize.page([serialize.event(r) for r in rows[:limit]], len(rows) > limit)
+
+
+@router.get("/metrics", summary="Scalar training metrics, oldest first; filter by name")
+def job_metrics(job_id: str, name: str | None = None, after: int = Query(0, ge=0),
+                limit: int = Query(1000, ge=1, le=10000), owner: str = Owner, s: Session = DB) -> dict:
+    owned_job(s, owner, job_id)
+    q = select(JobMetric).where(JobMetric.job_id == job_id, JobMetric.id > after)
+    if name:
+        q = q.where(JobMetric.name == name)
+    rows = list(s.scalars(q.order_by(JobMetric.id).limit(limit + 1)))
+    return serialize.page([serialize.metric(r) for r in rows[:limit]], len(rows) > limit)
+
+
+@router.get("/evaluations", summary="Evaluations in the real env (return and D4RL normalised score)")
+def job_evaluations(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+    owned_job(s, owner, job_id)
+    rows = s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id))
+    return serialize.page([serialize.evaluation(r) for r in rows], False)
+
+
+@router.get("/checkpoints", summary="Checkpoints still on disk (older ones are pruned by the trainer)")
+def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+    owned_job(s, owner, job_id)
+    rows = s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == job_id).order_by(JobCheckpoint.id))
+    return serialize.page([serialize.checkpoint(r) for r in rows if Path(r.path).is_file()], False)
+
+
+@router.get("/curve.png", summary="Learning curve (normalised score per evaluation)", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
+    owned_job(s, owner, job_id)
+    rows = list(s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id)))
+    png = render(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
+    return Response(png, media_type="image/png")
+
+
+POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
+                "state_dict": ("policy_state_dict.pt", "application/octet-stream"),
+                "metadata": ("metadata.json", "application/json")}
+
+
+@router.get("/policy", summary="The trained policy: TorchScript (obs batch -> actions), state_dict, or metadata",
+            response_class=FileResponse)
+def job_policy(job_id: str, format: Literal["torchscript", "state_dict", "metadata"] = "torchscript",
+               owner: str = Owner, s: Session = DB, settings: Settings = Config):
+    job = owned_job(s, owner, job_id)
+    if job.status != "succeeded":
+        raise Problem(409, "policy_not_ready", f"job {job_id} is {job.status}; a policy exists once it has succeeded")
+    name, media = POLICY_FILES[format]
+    path = job_dir(settings, job_id) / "policy" / name
+    if not path.is_file():
+        raise Problem(404, "not_found", f"job {job_id} has no {format} policy file")
+    return FileResponse(path, media_type=media, filename=f"{job_id}-{name}")

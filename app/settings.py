@@ -1,0 +1,50 @@
+"""Service configuration from the environment (prefix DROP_), so one image runs embedded or in production."""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore")
+
+    data_dir: Path = Field(Path("data"), description="datasets, job runs, broker folders, SQLite file")
+    database_url: str | None = Field(None, description="default: sqlite:///<data_dir>/drop.db")
+    broker_url: str | None = Field(None, description="default: Celery filesystem transport under data_dir")
+    queue: str = "drop-jobs"
+    max_upload_bytes: int = Field(2 * 1024**3, ge=1)
+    auth_disabled: bool = Field(False, description="single-user local mode: every request is the 'local' owner")
+    worker_threads: int | None = Field(None, ge=1, description="torch threads per job")
+    worker_concurrency: int = Field(1, ge=1, description="jobs at once per `drop worker`")
+    max_attempts: int = Field(3, ge=1)
+    max_runtime_s: int = Field(24 * 3600, ge=1, description="default hard limit for one job attempt")
+    heartbeat_s: float = Field(10.0, gt=0)
+    stale_after_s: float = Field(120.0, gt=0, description="a running job whose heartbeat is older is re-queued")
+    reap_every_s: float = Field(30.0, gt=0)
+    validate_timeout_s: float = Field(300.0, gt=0)
+    validate_memory_bytes: int = Field(8 * 1024**3, ge=256 * 1024**2, description="address-space cap of the validator")
+    cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'drop.db').resolve()}"
+
+    @property
+    def celery_broker_url(self) -> str:
+        return self.broker_url or "filesystem://"
+
+    @property
+    def is_filesystem_broker(self) -> bool:
+        return self.celery_broker_url.startswith("filesystem://")
+
+    def ensure_dirs(self) -> None:
+        for sub in ("datasets", "jobs", "uploads", "broker/queue", "broker/processed"):
+            (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

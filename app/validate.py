@@ -1,0 +1,182 @@
+"""Validate (and if needed convert) an uploaded dataset in a child process with memory, CPU and file-size limits.
+
+The upload is untrusted: parsing HDF5 or a zip happens in `python -m app.validate`, never in the API process, so a
+hostile or huge file can at worst kill the child. The child prints one JSON line: the report or the error.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import resource
+import sys
+import zipfile
+from pathlib import Path
+
+HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+ZIP_MAGIC = b"PK\x03\x04"
+EXIT_INVALID = 3
+
+
+class Invalid(Exception):
+    pass
+
+
+# ------------------------------------------------------------------------------------------------ child side
+def _sniff(path: Path) -> str:
+    head = path.open("rb").read(8)
+    if head.startswith(HDF5_MAGIC):
+        return "hdf5"
+    if head.startswith(ZIP_MAGIC):
+        with zipfile.ZipFile(path) as zf:
+            names = zf.namelist()
+        if any(n.endswith("main_data.hdf5") for n in names):
+            return "minari"
+        if any(n.endswith(".npy") for n in names):
+            return "npz"
+        raise Invalid("file: a zip that is neither a Minari dataset (no data/main_data.hdf5) nor an .npz")
+    raise Invalid("file: not an HDF5 file, an .npz or a Minari zip (unrecognised leading bytes)")
+
+
+def _minari_to_hdf5(src: Path, dest: Path, cap: int) -> None:
+    """Concatenate Minari episodes into D4RL layout (observations[:-1] / [1:], terminations, truncations)."""
+    import h5py
+    import numpy as np
+
+    from drop_engine.data import from_arrays, save_hdf5
+
+    with zipfile.ZipFile(src) as zf:
+        members = {Path(n).name: n for n in zf.namelist() if Path(n).parent.name == "data" or "/" not in n}
+        main = next((n for n in zf.namelist() if n.endswith("main_data.hdf5")), None)
+        info = zf.getinfo(main)
+        if info.file_size > cap:
+            raise Invalid(f"main_data.hdf5: {info.file_size} bytes uncompressed exceeds the limit of {cap}")
+        raw = dest.with_name("minari_main.hdf5")
+        with zf.open(info) as fin, raw.open("wb") as fout:
+            copied = 0
+            while chunk := fin.read(1 << 20):
+                copied += len(chunk)
+                if copied > cap:
+                    raise Invalid("main_data.hdf5: larger than its zip entry claims")
+                fout.write(chunk)
+        env_name = None
+        if "metadata.json" in members:
+            try:
+                meta = json.loads(zf.read(members["metadata.json"]))
+                spec = meta.get("env_spec")
+                spec = json.loads(spec) if isinstance(spec, str) else spec
+                env_name = (spec or {}).get("id")
+            except (ValueError, AttributeError):
+                env_name = None
+    cols: dict[str, list] = {k: [] for k in ("observations", "actions", "rewards", "next_observations", "terminals",
+                                             "timeouts")}
+    try:
+        with h5py.File(raw, "r") as handle:
+            episodes = sorted((k for k in handle if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
+            if not episodes:
+                raise Invalid("main_data.hdf5: no episode_N groups")
+            for name in episodes:
+                ep = handle[name]
+                for key in ("observations", "actions", "rewards", "terminations", "truncations"):
+                    if key not in ep or not isinstance(ep[key], h5py.Dataset):
+                        raise Invalid(f"{name}/{key}: missing or not an array (only Box observation spaces are supported)")
+                obs = ep["observations"][()]
+                n = len(ep["actions"])
+                if len(obs) != n + 1:
+                    raise Invalid(f"{name}/observations: expected {n + 1} rows (actions + 1), found {len(obs)}")
+                cols["observations"].append(obs[:-1])
+                cols["next_observations"].append(obs[1:])
+                cols["actions"].append(ep["actions"][()])
+                cols["rewards"].append(ep["rewards"][()])
+                term, trunc = ep["terminations"][()].astype(bool), ep["truncations"][()].astype(bool)
+                cols["terminals"].append(term)
+                cols["timeouts"].append(trunc & ~term)
+    except OSError as exc:
+        raise Invalid(f"main_data.hdf5: not a readable HDF5 file ({exc})") from None
+    finally:
+        raw.unlink(missing_ok=True)
+    arrays = {k: np.concatenate(v) for k, v in cols.items()}
+    from_arrays(arrays)  # validate before writing
+    save_hdf5(dest, arrays, {"env_name": env_name} if env_name else {})
+
+
+def _link_or_copy(src: Path, target: Path) -> None:
+    try:
+        os.link(src, target)
+    except OSError:
+        import shutil
+
+        shutil.copyfile(src, target)
+
+
+def _child(src: Path, dest_dir: Path, cap: int) -> dict:
+    from drop_engine.data import DatasetError, describe, load_dataset
+
+    try:
+        kind = _sniff(src)
+        if kind == "minari":
+            target = dest_dir / "data.hdf5"
+            _minari_to_hdf5(src, target, cap)
+        else:
+            target = dest_dir / ("data.npz" if kind == "npz" else "data.hdf5")
+            _link_or_copy(src, target)
+        try:
+            report = describe(load_dataset(target)).to_dict()
+        except BaseException:
+            target.unlink(missing_ok=True)
+            raise
+        return {"ok": True, "format": kind, "file": target.name, "report": report}
+    except (Invalid, DatasetError) as exc:
+        return {"ok": False, "error": str(exc)}
+    except zipfile.BadZipFile as exc:
+        return {"ok": False, "error": f"file: broken zip ({exc})"}
+    except MemoryError:
+        return {"ok": False, "error": "file: too large to validate within the validator's memory limit"}
+
+
+def main() -> int:
+    src, dest_dir, cap = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+    out = _child(src, dest_dir, cap)
+    print(json.dumps(out), flush=True)
+    return 0 if out["ok"] else EXIT_INVALID
+
+
+# ------------------------------------------------------------------------------------------------ parent side
+def _limits(memory: int, cpu_s: int, fsize: int):
+    def apply() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
+        resource.setrlimit(resource.RLIMIT_CPU, (cpu_s, cpu_s + 5))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    return apply
+
+
+async def validate_file(src: Path, dest_dir: Path, *, memory: int, timeout: float, max_bytes: int) -> dict:
+    """Run the child; returns {"format", "file", "report"} or raises Invalid with the message for the client."""
+    cap = 4 * max_bytes
+    env = {k: v for k, v in os.environ.items()}
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "app.validate", str(src), str(dest_dir), str(cap),
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
+        preexec_fn=_limits(memory, int(timeout) + 1, cap + (1 << 20)),
+    )
+    try:
+        out, err = await asyncio.wait_for(proc.communicate(), timeout)
+    except asyncio.TimeoutError:
+        proc.kill()
+        await proc.wait()
+        raise Invalid(f"file: validation did not finish within {timeout:.0f} s") from None
+    lines = out.decode(errors="replace").strip().splitlines()
+    try:
+        result = json.loads(lines[-1])
+    except (IndexError, ValueError):
+        tail = err.decode(errors="replace").strip().splitlines()[-1:] or ["no output"]
+        raise Invalid(f"file: the validator crashed (exit {proc.returncode}: {tail[0][:200]})") from None
+    if not result["ok"]:
+        raise Invalid(result["error"])
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,162 @@
+"""Fixtures for the service tests: a throwaway PostgreSQL database, a private Redis queue, a real Celery worker
+process, the API in-process over the real database and broker, and small real datasets."""
+from __future__ import annotations
+
+import os
+import secrets
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psycopg
+import pytest
+import redis
+
+from app.settings import Settings
+
+PG_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"
+REDIS_URL = "redis://127.0.0.1:6379/0"
+REPO = Path(__file__).resolve().parents[2]
+
+
+def settings_env(settings: Settings) -> dict[str, str]:
+    """The DROP_ environment that makes a subprocess see the same settings."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DROP_")}
+    for name, value in settings.model_dump().items():
+        if value is not None:
+            env[f"DROP_{name.upper()}"] = str(value)
+    return env
+
+
+@pytest.fixture(scope="session")
+def hopper_file(tmp_path_factory) -> Path:
+    from drop_engine.collect import collect_transitions, random_policy
+    from drop_engine.data import save_hdf5
+
+    path = tmp_path_factory.mktemp("data") / "hopper-random.hdf5"
+    save_hdf5(path, collect_transitions("hopper", random_policy(3, 0), 2000, seed=0), {"env_name": "Hopper-v4"})
+    return path
+
+
+@pytest.fixture(scope="session")
+def pg_url():
+    name = f"drop_test_{secrets.token_hex(4)}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+        conn.execute(f'CREATE DATABASE "{name}"')
+    yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
+    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+@pytest.fixture(scope="session")
+def settings(tmp_path_factory, pg_url) -> Settings:
+    from app.db import upgrade
+
+    queue = f"drop-test-{secrets.token_hex(4)}"
+    s = Settings(data_dir=tmp_path_factory.mktemp("drop-data"), database_url=pg_url, broker_url=REDIS_URL, queue=queue,
+                 max_upload_bytes=2_000_000, heartbeat_s=1.0, cancel_poll_s=0.1, worker_threads=1,
+                 validate_memory_bytes=4 * 1024**3)
+    s.ensure_dirs()
+    upgrade(pg_url)
+    yield s
+    client = redis.Redis.from_url(REDIS_URL)
+    for key in client.scan_iter(f"{queue}*"):
+        client.delete(key)
+
+
+def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if needle in path.read_text(errors="replace"):
+            return
+        if proc.poll() is not None:
+            break
+        time.sleep(0.2)
+    raise RuntimeError(f"{needle!r} not seen; log:\n{path.read_text(errors='replace')[-4000:]}")
+
+
+@pytest.fixture(scope="session")
+def worker(settings, tmp_path_factory):
+    """One real `drop worker` process consuming the test queue."""
+    log = tmp_path_factory.mktemp("logs") / "worker.log"
+    with log.open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
+                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        wait_for_line(log, " ready.", proc, 60)
+        yield proc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.fixture(scope="session")
+def app(settings):
+    from app.main import create_app
+
+    return create_app(settings)
+
+
+@pytest.fixture(scope="session")
+def tokens(app) -> dict[str, str]:
+    from app.auth import create_token
+
+    return {name: create_token(app.state.sessions, name) for name in ("alice", "bob")}
+
+
+@pytest.fixture(scope="session")
+def client(app):
+    from fastapi.testclient import TestClient
+
+    with TestClient(app, raise_server_exceptions=False) as c:
+        yield c
+
+
+@pytest.fixture
+def alice(client, tokens):
+    return _Authed(client, tokens["alice"])
+
+
+@pytest.fixture
+def bob(client, tokens):
+    return _Authed(client, tokens["bob"])
+
+
+class _Authed:
+    """A TestClient that sends one owner's bearer token."""
+
+    def __init__(self, client, token: str):
+        self.client, self.headers = client, {"Authorization": f"Bearer {token}"}
+
+    def request(self, method: str, url: str, headers: dict | None = None, **kw):
+        return self.client.request(method, url, headers={**self.headers, **(headers or {})}, **kw)
+
+    def get(self, url, **kw):
+        return self.request("GET", url, **kw)
+
+    def post(self, url, **kw):
+        return self.request("POST", url, **kw)
+
+    def delete(self, url, **kw):
+        return self.request("DELETE", url, **kw)
+
+    def stream(self, method, url, headers=None, **kw):
+        return self.client.stream(method, url, headers={**self.headers, **(headers or {})}, **kw)
+
+    def upload(self, path: Path, **kw):
+        with open(path, "rb") as fh:
+            return self.post("/v1/datasets", files={"file": (path.name, fh, "application/x-hdf5")}, **kw)
+
+    def wait(self, job_id: str, statuses: set[str], timeout: float = 120.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            job = self.get(f"/v1/jobs/{job_id}").json()
+            if job["status"] in statuses:
+                return job
+            time.sleep(0.25)
+        raise AssertionError(f"job {job_id} still {job['status']} after {timeout} s: {job}")

@@ -1,0 +1,78 @@
+"""Job requests are validated field by field (422 naming the field), Idempotency-Key replays, and every error is
+problem+json."""
+from __future__ import annotations
+
+import pytest
+
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture(scope="module")
+def dataset(client, tokens, hopper_file):
+    with open(hopper_file, "rb") as fh:
+        r = client.post("/v1/datasets", files={"file": ("h.hdf5", fh)}, headers={"Authorization": f"Bearer {tokens['alice']}"})
+    return r.json()
+
+
+@pytest.mark.parametrize("body, field, code", [
+    ({"algorithm": "ppo"}, "algorithm", "unknown_algorithm"),
+    ({"env": "walker2d"}, "env", "env_mismatch"),
+    ({"env": "ant"}, "env", "unknown_env"),
+    ({"preset": "huge"}, "preset", "unknown_preset"),
+    ({"overrides": {"dice.nope": 1}}, "dice.nope", "invalid_config"),
+    ({"overrides": {"epochs": 0}}, "epochs", "invalid_config"),
+    ({"overrides": {"sac.gamma": "high"}}, "sac.gamma", "invalid_config"),
+    ({"overrides": {"device": "cuda"}}, "overrides", "invalid_override"),
+    ({"seed": -1}, "seed", "validation_error"),
+    ({"colour": "red"}, "colour", "validation_error"),
+])
+def test_bad_job_fields_are_422(alice, dataset, body, field, code):
+    r = alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "preset": "smoke", **body})
+    assert r.status_code == 422, r.text
+    assert r.headers["content-type"] == PROBLEM
+    problem = r.json()
+    assert problem["code"] == code and field in {e["field"] for e in problem["errors"]}, problem
+
+
+def test_unknown_dataset_is_404(alice):
+    r = alice.post("/v1/jobs", json={"dataset_id": "ds_missing", "preset": "smoke"})
+    assert r.status_code == 404 and r.json()["code"] == "not_found"
+
+
+def test_idempotency_key(alice, dataset):
+    body = {"dataset_id": dataset["id"], "preset": "smoke", "seed": 3}
+    key = {"Idempotency-Key": "create-once-1"}
+    first = alice.post("/v1/jobs", json=body, headers=key)
+    again = alice.post("/v1/jobs", json=body, headers=key)
+    assert first.status_code == 201 and again.status_code == 200
+    assert first.json()["id"] == again.json()["id"]
+    other = alice.post("/v1/jobs", json={**body, "seed": 4}, headers=key)
+    assert other.status_code == 422 and other.json()["code"] == "idempotency_key_reused"
+    alice.post(f"/v1/jobs/{first.json()['id']}/cancel")
+
+
+def test_list_filter_and_paging(alice, dataset):
+    ids = [alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "preset": "smoke", "seed": 100 + i}).json()["id"]
+           for i in range(3)]
+    for job_id in ids:
+        alice.post(f"/v1/jobs/{job_id}/cancel")
+    page = alice.get("/v1/jobs", params={"limit": 2}).json()
+    assert page["has_more"] and len(page["data"]) == 2
+    rest = alice.get("/v1/jobs", params={"limit": 100, "after": page["next_after"]}).json()
+    seen = [j["id"] for j in page["data"] + rest["data"]]
+    assert len(seen) == len(set(seen)) and set(ids) <= set(seen)
+    assert seen == sorted(seen, reverse=True)
+    r = alice.get("/v1/jobs", params={"status": "bogus"})
+    assert r.status_code == 422 and r.headers["content-type"] == PROBLEM
+
+
+def test_errors_are_problem_json(client, alice):
+    for r in (client.get("/nowhere"), alice.get("/v1/jobs/job_nope"), client.put("/healthz"),
+              alice.get("/v1/jobs", params={"limit": 0})):
+        assert r.headers["content-type"] == PROBLEM, r.text
+        assert {"type", "title", "status", "detail", "code"} <= r.json().keys()
+
+
+def test_health(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").json() == {"status": "ready"}

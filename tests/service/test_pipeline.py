@@ -1,0 +1,71 @@
+"""Upload -> job -> events -> succeeded -> policy download, through the real API, PostgreSQL, Redis and a worker."""
+from __future__ import annotations
+
+import io
+import json
+
+import torch
+
+
+def test_upload_train_download(alice, worker, hopper_file):
+    r = alice.upload(hopper_file)
+    assert r.status_code == 201, r.text
+    ds = r.json()
+    assert ds["object"] == "dataset" and ds["env"] == "hopper" and ds["name"] == hopper_file.name
+    assert ds["report"]["transitions"] == 2000 and (ds["obs_dim"], ds["act_dim"]) == (11, 3)
+    assert ds["report"]["terminals"] + ds["report"]["timeouts"] >= 1
+    import hashlib
+    assert ds["sha256"] == hashlib.sha256(hopper_file.read_bytes()).hexdigest()
+
+    r = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "algorithm": "drop", "preset": "smoke", "seed": 1,
+                                     "overrides": {"dice.lr": 1e-3}})
+    assert r.status_code == 201, r.text
+    job = r.json()
+    assert job["status"] == "queued" and job["env"] == "hopper" and job["config"]["dice"]["lr"] == 1e-3
+
+    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"})
+    assert done["status"] == "succeeded", done
+    assert done["attempts"] == 1 and done["progress"]["fraction"] == 1.0
+    assert done["best_score"] is not None and done["last_score"] is not None
+    assert "sac/critic_loss" in done["latest_metrics"]
+
+    events = alice.get(f"/v1/jobs/{job['id']}/events").json()["data"]
+    statuses = [e["data"]["status"] for e in events if e["type"] == "status"]
+    assert statuses == ["queued", "running", "succeeded"]
+    assert {"progress", "evaluation", "checkpoint"} <= {e["type"] for e in events}
+    page = alice.get(f"/v1/jobs/{job['id']}/events", params={"after": events[0]["id"], "limit": 2}).json()
+    assert [e["id"] for e in page["data"]] == [e["id"] for e in events[1:3]] and page["has_more"]
+
+    with alice.stream("GET", f"/v1/jobs/{job['id']}/events", headers={"Accept": "text/event-stream"}) as stream:
+        assert stream.headers["content-type"].startswith("text/event-stream")
+        body = "".join(stream.iter_text())
+    frames = [f for f in body.split("\n\n") if f.strip()]
+    assert frames[-1].startswith("event: end") and len(frames) == len(events) + 1
+    assert json.loads(frames[0].split("data: ", 1)[1])["id"] == events[0]["id"]
+
+    metrics = alice.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "sac/critic_loss"}).json()["data"]
+    assert metrics and all(m["name"] == "sac/critic_loss" for m in metrics)
+    evals = alice.get(f"/v1/jobs/{job['id']}/evaluations").json()["data"]
+    assert [e["epoch"] for e in evals] == [1, 2] and evals[-1]["normalized_score"] == done["last_score"]
+    ckpts = alice.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"]
+    assert ckpts and ckpts[-1]["epoch"] == 2 and ckpts[-1]["size_bytes"] > 0
+    png = alice.get(f"/v1/jobs/{job['id']}/curve.png")
+    assert png.headers["content-type"] == "image/png" and png.content.startswith(b"\x89PNG")
+
+    r = alice.get(f"/v1/jobs/{job['id']}/policy")
+    assert r.status_code == 200
+    policy = torch.jit.load(io.BytesIO(r.content))
+    actions = policy(torch.randn(5, 11))
+    assert actions.shape == (5, 3) and bool((actions.abs() <= 1).all())
+    state = torch.load(io.BytesIO(alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "state_dict"}).content))
+    assert any(k.startswith("net.") for k in state)
+    meta = alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "metadata"}).json()
+    assert meta["env"] == "hopper" and meta["obs_dim"] == 11
+
+    listed = alice.get("/v1/jobs", params={"status": "succeeded"}).json()["data"]
+    assert job["id"] in [j["id"] for j in listed]
+    assert alice.post(f"/v1/jobs/{job['id']}/cancel").status_code == 409
+
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+    assert alice.get(f"/v1/datasets/{ds['id']}").status_code == 404
+    assert alice.get(f"/v1/jobs/{job['id']}").json()["dataset_id"] is None

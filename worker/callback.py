@@ -1,0 +1,88 @@
+"""The engine callback that records a run in the database: progress, metrics, evaluations, checkpoints, and the
+cancellation check. Writes are fenced by the attempt number so a worker that lost its job cannot overwrite it."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Mapping
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from drop_engine.callbacks import Callback
+
+PROGRESS_EVERY_S = 1.0
+
+
+class DbCallback(Callback):
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, cancel_poll_s: float):
+        self.sessions, self.job_id, self.attempt = sessions, job_id, attempt
+        self.cancel_poll_s = cancel_poll_s
+        self._last_check = 0.0
+        self._last_progress = 0.0
+        self._phase_epoch: tuple[str, int] | None = None
+        self.stop_reason: str | None = None  # "cancelled" or "lost"
+
+    def _mine(self):
+        return (Job.id == self.job_id) & (Job.attempts == self.attempt) & Job.status.in_(("running", "cancelling"))
+
+    def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
+        now = time.monotonic()
+        key = (phase, epoch)
+        changed = key != self._phase_epoch
+        if not changed and now - self._last_progress < PROGRESS_EVERY_S and step != total:
+            return
+        self._last_progress = now
+        fraction = round(step / total, 4) if phase == "train" and total else (1.0 if phase == "export" and step else 0.0)
+        progress = {"phase": phase, "epoch": epoch, "step": step, "total": total, "fraction": fraction}
+        with self.sessions.begin() as s:
+            if s.execute(update(Job).where(self._mine()).values(progress=progress)).rowcount and changed:
+                message = f"{phase}: epoch {epoch}" if phase == "train" else f"{phase}: step {step}/{total}"
+                s.add(JobEvent(job_id=self.job_id, type="progress", message=message, data=progress))
+        self._phase_epoch = key
+
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        values = {k: float(v) for k, v in metrics.items()}
+        with self.sessions.begin() as s:
+            latest = s.scalar(select(Job.latest_metrics).where(Job.id == self.job_id)) or {}
+            latest = {**latest, **values, "step": step}
+            if s.execute(update(Job).where(self._mine()).values(latest_metrics=latest)).rowcount:
+                s.add_all(JobMetric(job_id=self.job_id, name=k, step=step, value=v) for k, v in values.items())
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        with self.sessions.begin() as s:
+            best = s.scalar(select(Job.best_score).where(Job.id == self.job_id))
+            best = normalized_score if best is None else max(best, normalized_score)
+            if s.execute(update(Job).where(self._mine()).values(last_score=normalized_score, best_score=best)).rowcount:
+                s.add(JobEvaluation(job_id=self.job_id, epoch=epoch, mean_return=mean_return,
+                                    normalized_score=normalized_score))
+                s.add(JobEvent(job_id=self.job_id, type="evaluation",
+                               message=f"epoch {epoch}: return {mean_return:.1f}, score {normalized_score:.1f}",
+                               data={"epoch": epoch, "mean_return": mean_return, "normalized_score": normalized_score}))
+
+    def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
+        path = Path(path)
+        with self.sessions.begin() as s:
+            for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
+                if not Path(row.path).exists():  # pruned by the trainer
+                    s.delete(row)
+            s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=str(path.resolve()),
+                                size_bytes=path.stat().st_size if path.exists() else 0))
+            s.add(JobEvent(job_id=self.job_id, type="checkpoint", message=f"checkpoint at epoch {epoch}, step {step}",
+                           data={"epoch": epoch, "step": step}))
+
+    def should_stop(self) -> bool:
+        if self.stop_reason:
+            return True
+        now = time.monotonic()
+        if now - self._last_check < self.cancel_poll_s:
+            return False
+        self._last_check = now
+        with self.sessions() as s:
+            row = s.execute(select(Job.status, Job.attempts).where(Job.id == self.job_id)).one_or_none()
+        if row is None or row.attempts != self.attempt or row.status not in ("running", "cancelling"):
+            self.stop_reason = "lost"
+        elif row.status == "cancelling":
+            self.stop_reason = "cancelled"
+        return self.stop_reason is not None

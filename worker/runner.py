@@ -1,0 +1,140 @@
+"""Run one job: claim it, train with the database callback while heartbeating, record how it ended.
+
+The claim is a single conditional UPDATE (queued -> running, attempts + 1) in one transaction, which is atomic on
+PostgreSQL and SQLite alike: of two deliveries of the same message, exactly one wins, and the loser does nothing.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import traceback
+from pathlib import Path
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.models import Dataset, Job, JobEvent, utcnow
+from app.settings import Settings
+from app.storage import job_dir
+
+from .callback import DbCallback
+
+log = logging.getLogger("drop.worker")
+
+
+def worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def claim(sessions: sessionmaker[Session], job_id: str, name: str) -> int | None:
+    """The attempt number if this worker now owns the job, else None."""
+    now = utcnow()
+    with sessions.begin() as s:
+        won = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued", Job.attempts < Job.max_attempts)
+                        .values(status="running", attempts=Job.attempts + 1, worker=name, heartbeat_at=now,
+                                started_at=now)).rowcount
+        if not won:
+            return None
+        attempt = s.scalar(select(Job.attempts).where(Job.id == job_id))
+        s.add(JobEvent(job_id=job_id, type="status", message=f"running (attempt {attempt} on {name})",
+                       data={"status": "running", "attempt": attempt, "worker": name}))
+    return attempt
+
+
+def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: str, message: str, *,
+           error: tuple[str, str] | None = None, result: dict | None = None, trace: str | None = None) -> bool:
+    """Record the end of this attempt, unless the job is no longer ours."""
+    values = {"status": status, "finished_at": utcnow(), "heartbeat_at": utcnow()}
+    if error:
+        values.update(error_code=error[0], error_message=error[1])
+    if result is not None:
+        values.update(result=result)
+    with sessions.begin() as s:
+        mine = (Job.id == job_id) & (Job.attempts == attempt) & Job.status.in_(("running", "cancelling"))
+        if not s.execute(update(Job).where(mine).values(**values)).rowcount:
+            return False
+        data = {"status": status, **({"error": {"code": error[0], "message": error[1]}} if error else {})}
+        s.add(JobEvent(job_id=job_id, type="status", message=message, data=data))
+        if trace:
+            s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
+    return True
+
+
+class Heartbeat(threading.Thread):
+    """Touches heartbeat_at every few seconds so the reaper can tell a live job from a dead worker."""
+
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, every_s: float):
+        super().__init__(daemon=True, name=f"heartbeat-{job_id}")
+        self.sessions, self.job_id, self.attempt, self.every_s = sessions, job_id, attempt, every_s
+        self.stopped = threading.Event()
+
+    def run(self) -> None:
+        while not self.stopped.wait(self.every_s):
+            try:
+                with self.sessions.begin() as s:
+                    s.execute(update(Job).where(Job.id == self.job_id, Job.attempts == self.attempt,
+                                                Job.status.in_(("running", "cancelling")))
+                              .values(heartbeat_at=utcnow()))
+            except Exception:  # a database blip must not kill the job; the next beat retries
+                log.exception("heartbeat for %s failed", self.job_id)
+
+    def stop(self) -> None:
+        self.stopped.set()
+
+
+def _requeue_or_fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:
+    finish(sessions, job_id, attempt, "failed", f"failed: {message}", error=(code, message), trace=trace)
+
+
+def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str) -> str:
+    """Run the job if we can claim it; returns the final status, or 'skipped'."""
+    from celery.exceptions import SoftTimeLimitExceeded
+
+    from drop_engine.config import TrainConfig
+    from drop_engine.data import DatasetError
+    from drop_engine.trainer import train
+
+    name = worker_name()
+    attempt = claim(sessions, job_id, name)
+    if attempt is None:
+        log.info("job %s not claimable (already taken, finished or cancelled)", job_id)
+        return "skipped"
+    with sessions() as s:
+        job = s.get(Job, job_id)
+        dataset = s.get(Dataset, job.dataset_id) if job.dataset_id else None
+        config_data = dict(job.config)
+    if settings.worker_threads:
+        config_data["threads"] = settings.worker_threads
+    callback = DbCallback(sessions, job_id, attempt, settings.cancel_poll_s)
+    heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
+    heartbeat.start()
+    try:
+        if dataset is None or not Path(dataset.path).is_file():
+            raise DatasetError("file: the job's dataset was deleted")
+        result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback)
+    except SoftTimeLimitExceeded:
+        _requeue_or_fail(sessions, job_id, attempt, "timeout",
+                         f"the attempt ran past max_runtime_s={job.max_runtime_s}", traceback.format_exc())
+        return "failed"
+    except DatasetError as exc:
+        _requeue_or_fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
+        return "failed"
+    except Exception as exc:
+        log.exception("job %s failed", job_id)
+        _requeue_or_fail(sessions, job_id, attempt, "training_error", f"{type(exc).__name__}: {exc}",
+                         traceback.format_exc())
+        return "failed"
+    finally:
+        heartbeat.stop()
+    summary = result.to_dict()
+    if result.status == "completed":
+        finish(sessions, job_id, attempt, "succeeded", "succeeded", result=summary)
+        return "succeeded"
+    if callback.stop_reason == "cancelled":
+        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written",
+               result=summary)
+        return "cancelled"
+    log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
+    return "lost"
