@@ -20,5 +20,14 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# D4RL-style benchmark datasets (random, medium, medium-replay, medium-expert) made by `drop collect`, one env after
+# another, into a cache outside the repo: about an hour per env on 2 cores. Rerunning resumes where it stopped.
+BENCH_ENVS ?= hopper walker2d halfcheetah
+bench-data: $(STAMP)
+	out="$${DROP_BENCH_DATA:-$$HOME/.cache/drop-rl/bench-data}"; \
+	for env in $(BENCH_ENVS); do \
+		$(BIN)/drop collect --env $$env --out "$$out" --kinds random,medium,medium-replay,medium-expert || exit 1; \
+	done
+
 clean:
 	rm -rf $(VENV) .pytest_cache

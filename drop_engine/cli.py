@@ -57,6 +57,57 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_collect(args: argparse.Namespace) -> int:
+    """Train SAC online and write the D4RL kinds; SIGINT/SIGTERM stop at a step boundary with a checkpoint."""
+    import signal
+    import time
+
+    import torch
+
+    from .collect import DEFAULT_TRANSITIONS, KINDS, CollectConfig, collect_datasets, summary_table
+    from .online import DEFAULT_STEPS, OnlineConfig
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    kinds = tuple(args.kinds.split(",")) if args.kinds else KINDS
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        print(f"drop collect: unknown kinds {', '.join(unknown)}; known: {', '.join(KINDS)}", file=sys.stderr)
+        return 2
+    try:
+        online = OnlineConfig(env=args.env, version=args.env_version, seed=args.seed,
+                              steps=args.steps if args.steps is not None else DEFAULT_STEPS,
+                              warmup=args.warmup, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
+                              medium_return=args.medium_return)
+    except (KeyError, ValueError) as exc:
+        print(f"drop collect: {exc}", file=sys.stderr)
+        return 2
+    stop = {"asked": False}
+
+    def ask_stop(signum, frame) -> None:
+        stop["asked"] = True
+
+    previous = {sig: signal.signal(sig, ask_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    started = time.time()
+    try:
+        config = CollectConfig(online, args.transitions or DEFAULT_TRANSITIONS, args.num_envs)
+        rows = collect_datasets(config, args.out, kinds, not args.no_progress, should_stop=lambda: stop["asked"])
+    except ValueError as exc:
+        print(f"drop collect: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if rows is None:
+        print(f"drop collect: stopped; run the same command again to resume from {args.out}", file=sys.stderr)
+        return 130
+    print(summary_table(rows))
+    print(f"wall time: {time.time() - started:.0f} s this invocation; SAC training {rows[0]['train_seconds']:.0f} s "
+          f"over all invocations, recording {rows[0]['record_seconds']:.0f} s")
+    Path(args.out, f"{online.env}-summary.json").write_text(json.dumps(rows, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drop", description="DROP offline RL: engine and service")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -82,6 +133,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("collect", help="make D4RL-style datasets by training SAC online in the real env")
+    p.add_argument("--env", default="hopper", help="hopper | walker2d | halfcheetah")
+    p.add_argument("--out", required=True, help="output directory; an existing one is resumed")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=None,
+                   help="online SAC env steps, one update each (default 120,000: about 45 min on 2 cores)")
+    p.add_argument("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, "
+                   "medium, expert; medium-expert holds twice this; default 200,000)")
+    p.add_argument("--kinds", default=None, help="comma-separated subset of random,medium,medium-replay,expert,"
+                                                 "medium-expert (default all)")
+    p.add_argument("--warmup", type=int, default=5000, help="uniform-random steps before SAC updates start")
+    p.add_argument("--eval-every", type=int, default=5000, help="env steps between evaluations and checkpoints")
+    p.add_argument("--eval-episodes", type=int, default=10)
+    p.add_argument("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
+    p.add_argument("--env-version", default="v4", choices=["v4", "v5"])
+    p.add_argument("--num-envs", type=int, default=8, help="envs stepped side by side while recording")
+    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_collect)
     return parser
 
 

@@ -1,0 +1,144 @@
+"""`drop collect`: online SAC in the real hopper, the five D4RL kinds, validation, resume. Short runs, small nets."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from drop_engine.cli import main
+from drop_engine.collect import KINDS, CollectConfig, collect_datasets, collect_transitions, random_policy, read_arrays
+from drop_engine.config import SACConfig
+from drop_engine.data import describe, load_dataset
+from drop_engine.envs import get_env, make_env
+from drop_engine.online import OnlineConfig, OnlineSAC
+
+SMALL = SACConfig(hidden=(64, 64), batch_size=64)
+
+
+def small_online(**kw) -> OnlineConfig:
+    # medium_return 100: reachable in ~1k updates of a small net, while the initial policy gets ~10.
+    base = dict(env="hopper", steps=1500, warmup=300, eval_every=300, eval_episodes=3, medium_return=100.0, sac=SMALL)
+    return OnlineConfig(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory):
+    out = tmp_path_factory.mktemp("collect")
+    cfg = CollectConfig(small_online(), transitions=2000, num_envs=4)
+    rows = collect_datasets(cfg, out, progress=False)
+    return out, cfg, {r["kind"]: r for r in rows}
+
+
+def test_every_kind_passes_upload_validation_and_round_trips(collected):
+    out, cfg, rows = collected
+    assert set(rows) == set(KINDS)
+    for kind in KINDS:
+        path = out / f"hopper-{kind}.hdf5"
+        arrays, attrs = read_arrays(path)
+        dataset = load_dataset(path, env="hopper")
+        report = describe(dataset)
+        assert report.env == "hopper" and report.warnings == []
+        assert report.transitions == rows[kind]["transitions"] == len(arrays["rewards"])
+        assert report.episodes == attrs["episodes"] == rows[kind]["episodes"]
+        np.testing.assert_array_equal(dataset.observations, arrays["observations"])
+        np.testing.assert_array_equal(dataset.next_observations, arrays["next_observations"])
+        np.testing.assert_array_equal(dataset.terminals, arrays["terminals"])
+        assert attrs["env_name"] == "Hopper-v4" and attrs["kind"] == kind and attrs["seed"] == 0
+        assert attrs["drop_rl_version"] and np.isfinite(attrs["policy_return"])
+        assert attrs["policy_normalized_score"] == pytest.approx(get_env("hopper").normalized_score(attrs["policy_return"]))
+        assert not (dataset.terminals & dataset.timeouts).any() and (dataset.terminals | dataset.timeouts)[-1]
+        with h5py.File(path) as handle:
+            assert handle["observations"].compression == "gzip"
+    assert rows["random"]["transitions"] == rows["medium"]["transitions"] == rows["expert"]["transitions"] == 2000
+    assert rows["medium-expert"]["transitions"] == 4000
+
+
+def test_kinds_are_what_they_say(collected):
+    out, cfg, rows = collected
+    attrs = {k: read_arrays(out / f"hopper-{k}.hdf5")[1] for k in KINDS}
+    assert attrs["random"]["policy_steps"].tolist() == [0]
+    assert attrs["medium"]["medium_threshold_reached"] and attrs["medium"]["policy_return"] >= 100.0
+    assert 0 < attrs["medium"]["policy_steps"][0] <= cfg.online.steps
+    assert attrs["expert"]["policy_steps"].tolist() == [cfg.online.steps]
+    # A random policy falls at once; the medium one keeps hopping for much longer.
+    assert rows["medium"]["mean_return"] > 2 * rows["random"]["mean_return"]
+    assert rows["medium"]["episodes"] < rows["random"]["episodes"]
+    # medium-replay is the agent's own experience up to the medium policy: the warm-up then the learning actor.
+    assert rows["medium-replay"]["transitions"] == attrs["medium"]["policy_steps"][0]
+    state = torch.load(out / "hopper-sac" / "online.pt", weights_only=False)
+    replay, _ = read_arrays(out / "hopper-medium-replay.hdf5")
+    np.testing.assert_array_equal(replay["actions"], state["history"]["actions"][: len(replay["actions"])])
+    medium, _ = read_arrays(out / "hopper-medium.hdf5")
+    expert, _ = read_arrays(out / "hopper-expert.hdf5")
+    mixed, _ = read_arrays(out / "hopper-medium-expert.hdf5")
+    np.testing.assert_array_equal(mixed["observations"], np.concatenate([medium["observations"], expert["observations"]]))
+
+
+def test_qpos_qvel_recompute_the_next_state(collected):
+    """infos/qpos and infos/qvel are each row's MuJoCo state: setting it and stepping gives next_observations."""
+    out, _, _ = collected
+    for kind in ("medium", "medium-replay"):
+        arrays, _ = read_arrays(out / f"hopper-{kind}.hdf5")
+        env = make_env("hopper")
+        env.reset(seed=0)
+        raw = env.unwrapped
+        for i in range(0, len(arrays["rewards"]), 97):
+            raw.set_state(arrays["infos/qpos"][i], arrays["infos/qvel"][i])
+            next_obs, reward, *_ = raw.step(arrays["actions"][i].astype(np.float64))
+            np.testing.assert_allclose(next_obs, arrays["next_observations"][i], atol=1e-5)
+            assert reward == pytest.approx(arrays["rewards"][i], abs=1e-4)
+        env.close()
+
+
+def test_collect_transitions_batches_envs_and_keeps_episodes_contiguous():
+    one = collect_transitions("hopper", random_policy(3, seed=1), 300, seed=5)
+    again = collect_transitions("hopper", random_policy(3, seed=1), 300, seed=5)
+    many = collect_transitions("hopper", random_policy(3, seed=1), 300, seed=5, num_envs=4)
+    np.testing.assert_array_equal(one["observations"], again["observations"])
+    for arrays in (one, many):
+        assert len(arrays["rewards"]) == 300
+        ends = arrays["terminals"] | arrays["timeouts"]
+        # inside an episode each row starts where the previous one ended
+        np.testing.assert_array_equal(arrays["observations"][1:][~ends[:-1]], arrays["next_observations"][:-1][~ends[:-1]])
+        assert ends[-1]
+
+
+def _params(agent: OnlineSAC) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in agent.sac.parameters()])
+
+
+def test_resume_continues_the_same_run(tmp_path):
+    """Stopped mid-episode and restarted, the run picks up at its checkpoint and ends exactly where an uninterrupted
+    one does (networks, optimiser moments, replay, env physics and RNGs all restored)."""
+    cfg = small_online(steps=700, warmup=200, eval_every=350)
+    straight = OnlineSAC(cfg, tmp_path / "a")
+    assert straight.run()
+    stopped = OnlineSAC(cfg, tmp_path / "b")
+    assert not stopped.run(should_stop=lambda: stopped.step == 437)
+    stopped.close()
+    resumed = OnlineSAC(cfg, tmp_path / "b")
+    assert resumed.resumed and resumed.step == 437 and resumed.history.n == 437 and len(resumed.buffer) == 437
+    seen = []
+    assert resumed.run(progress=lambda a: seen.append(a.step))
+    assert seen[0] > 437  # continued, not restarted
+    assert torch.equal(_params(straight), _params(resumed))
+    for key, value in straight.history.state_dict().items():
+        np.testing.assert_array_equal(value, resumed.history.state_dict()[key])
+    assert [s.to_dict() for s in straight.snapshots] == [s.to_dict() for s in resumed.snapshots]
+    with pytest.raises(ValueError, match="different settings"):
+        OnlineSAC(small_online(steps=700, warmup=200, eval_every=350, seed=1), tmp_path / "b")
+
+
+def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
+    out = tmp_path / "out"
+    args = ["collect", "--env", "hopper", "--out", str(out), "--steps", "250", "--warmup", "200", "--eval-every", "125",
+            "--eval-episodes", "1", "--transitions", "400", "--kinds", "random,medium-expert", "--no-progress"]
+    assert main(args) == 0
+    table = capsys.readouterr().out
+    assert "random" in table and "medium-expert" in table and "norm. score" in table
+    assert sorted(p.name for p in out.glob("*.hdf5")) == ["hopper-medium-expert.hdf5", "hopper-random.hdf5"]
+    written = {p.name: p.stat().st_mtime_ns for p in out.glob("*.hdf5")}
+    assert main(args) == 0  # finished files are kept, not remade
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.hdf5")} == written
+    assert main([*args[:-1], "--kinds", "nonsense"]) == 2
