@@ -21,6 +21,9 @@ class GradientDice(nn.Module):
         in_dim = obs_dim + act_dim
         self.tau_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
         self.f_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
+        # Start at tau = 1, the ratio of identical distributions, so an estimator that has not trained yet
+        # neither penalises nor rewards anything.
+        nn.init.constant_(self.tau_net.out.bias, 1.0)
         self.nu = nn.Parameter(torch.zeros(members, 1))
         self.tau_optim = torch.optim.Adam(self.tau_net.parameters(), lr=cfg.lr)
         self.f_optim = torch.optim.Adam([*self.f_net.parameters(), self.nu], lr=cfg.lr)
