@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -16,6 +17,11 @@ from ..upload import receive
 from ..validate import Invalid, validate_file
 
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
+
+
+def _save(s: Session, row: Dataset) -> None:
+    s.add(row)
+    s.commit()
 
 
 @router.post("", status_code=201, summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
@@ -36,8 +42,7 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
         row = Dataset(id=dataset_id, owner_id=owner, name=upload.filename, format=result["format"],
                       sha256=upload.sha256, size_bytes=upload.size, path=str((target / result["file"]).resolve()),
                       env=report.get("env"), obs_dim=report["obs_dim"], act_dim=report["act_dim"], report=report)
-        s.add(row)
-        s.commit()
+        await run_in_threadpool(_save, s, row)  # a busy SQLite must not block the event loop
     except BaseException:
         remove_tree(target)
         raise
