@@ -1,0 +1,88 @@
+"""A worker killed mid-job: its heartbeat goes stale, another worker's reaper re-queues the job, and the second
+attempt resumes from the newest checkpoint instead of starting over. Real worker processes, killed with SIGKILL."""
+from __future__ import annotations
+
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from .conftest import REPO, _Authed, settings_env, wait_for_line
+
+
+def _start_worker(settings, log):
+    with log.open("ab") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
+                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    wait_for_line(log, " ready.", proc, 60)
+    return proc
+
+
+def _kill_group(proc) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+
+
+@pytest.fixture
+def crash_settings(settings):
+    # A queue of its own, so the session's worker never takes these jobs; fast crash detection.
+    return settings.model_copy(update={"queue": f"drop-crash-{secrets.token_hex(4)}", "stale_after_s": 6.0,
+                                       "reap_every_s": 1.0})
+
+
+def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_file, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+
+    log = tmp_path / "workers.log"
+    first = _start_worker(crash_settings, log)
+    second = None
+    try:
+        with TestClient(create_app(crash_settings), raise_server_exceptions=False) as client:
+            alice = _Authed(client, tokens["alice"])
+            ds = alice.upload(hopper_file).json()
+            job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke",
+                                               "overrides": {"epochs": 6, "steps_per_epoch": 40}}).json()
+            deadline = time.monotonic() + 90
+            while time.monotonic() < deadline:
+                cur = alice.get(f"/v1/jobs/{job['id']}").json()
+                if cur["status"] == "running" and (cur["progress"] or {}).get("epoch", 0) >= 2:
+                    break
+                assert cur["status"] in ("queued", "running"), cur
+                time.sleep(0.1)
+            assert cur["status"] == "running", cur
+            _kill_group(first)
+            killed_at_epoch = cur["progress"]["epoch"]
+
+            second = _start_worker(crash_settings, log)
+            done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=150)
+            assert done["status"] == "succeeded", (done, alice.get(f"/v1/jobs/{job['id']}/events").json())
+            assert done["attempts"] == 2
+
+            events = alice.get(f"/v1/jobs/{job['id']}/events", params={"limit": 1000}).json()["data"]
+            messages = [e["message"] for e in events]
+            requeued = next(i for i, m in enumerate(messages) if m.startswith("re-queued"))
+            second_start = next(i for i, m in enumerate(messages) if m.startswith("running (attempt 2"))
+            assert requeued < second_start
+            after = events[second_start + 1:]
+            assert not any(e["type"] == "progress" and e["data"]["phase"] == "dynamics" for e in after)
+            first_epoch = next(e["data"]["epoch"] for e in after if e["type"] == "progress")
+            assert 1 <= first_epoch <= killed_at_epoch + 1, "resumed from a checkpoint, not from scratch"
+            assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+    finally:
+        _kill_group(first)
+        if second is not None:
+            second.terminate()
+            try:
+                second.wait(20)
+            except subprocess.TimeoutExpired:
+                _kill_group(second)
