@@ -40,9 +40,14 @@ class ReplayBuffer:
         self.ptr = (self.ptr + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
 
-    def sample(self, n: int) -> tuple[torch.Tensor, ...]:
-        idx = torch.randint(0, self.size, (n,), device=self.data["obs"].device)
+    def sample_indices(self, n: int) -> torch.Tensor:
+        return torch.randint(0, self.size, (n,), device=self.data["obs"].device)
+
+    def take(self, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
         return tuple(self.data[k][idx] for k in FIELDS)
+
+    def sample(self, n: int) -> tuple[torch.Tensor, ...]:
+        return self.take(self.sample_indices(n))
 
     def __len__(self) -> int:
         return self.size

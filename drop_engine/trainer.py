@@ -83,6 +83,8 @@ class Trainer:
             self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice, config.sac.gamma).to(dev)
             self.dice.norm.set(norm.mean, norm.std)
         self.termination = self.spec.termination
+        self.successors: torch.Tensor | None = None  # (elites, N, obs_dim), filled on first DICE use
+        self.successor_alive: torch.Tensor | None = None
         capacity = config.rollout.batch_size * config.horizon * config.rollout.retain_epochs
         self.model_buffer = ReplayBuffer(capacity, obs_dim, act_dim, dev)
 
@@ -162,19 +164,34 @@ class Trainer:
                             "dynamics/epochs": float(report.epochs)}, 0)
         return True
 
+    @torch.no_grad()
+    def _cache_model_successors(self, chunk: int = 8192) -> None:
+        """Each elite's mean next state and non-terminal mask for every offline (s, a).
+
+        The ensemble is frozen after its training, so these are computed once instead of once per DICE step."""
+        elites, obs, act = self.model.elites, self.real.data["obs"], self.real.data["act"]
+        nxt, alive = [], []
+        for lo in range(0, len(self.real), chunk):
+            o, a = obs[lo : lo + chunk], act[lo : lo + chunk]
+            mean, _ = self.model(o, a)
+            n = o + mean[elites, :, 1:]
+            nxt.append(n)
+            alive.append((~self.termination(o, a, n)).float())
+        self.successors, self.successor_alive = torch.cat(nxt, 1), torch.cat(alive, 1)
+
     def train_dice(self, steps: int) -> dict[str, torch.Tensor]:
-        cfg, model, actor, dice = self.cfg.dice, self.model, self.sac.actor, self.dice
+        cfg, actor, dice = self.cfg.dice, self.sac.actor, self.dice
+        if self.successors is None:
+            self._cache_model_successors()
         out: dict[str, torch.Tensor] = {}
-        elites = model.elites
         for _ in range(steps):
-            obs, act, _, _, _ = self.real.sample(cfg.batch_size)
-            obs0 = self.real.sample(cfg.batch_size)[0]
+            idx = self.real.sample_indices(cfg.batch_size)
+            obs, act = self.real.data["obs"][idx], self.real.data["act"][idx]
+            next_obs, not_done = self.successors[:, idx], self.successor_alive[:, idx]
+            obs0 = self.real.data["obs"][self.real.sample_indices(cfg.batch_size)]
             with torch.no_grad():
-                mean, _ = model(obs, act)
-                next_obs = obs + mean[elites, :, 1:]
                 next_act = actor.act(next_obs)
                 act0 = actor.act(obs0)
-                not_done = (~self.termination(obs, act, next_obs)).float()
             out = dice.update(obs, act, next_obs, next_act, obs0, act0, not_done)
         return out
 
