@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -16,13 +16,15 @@ PROGRESS_EVERY_S = 1.0
 
 
 class DbCallback(Callback):
-    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, cancel_poll_s: float):
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, cancel_poll_s: float,
+                 shutting_down: Callable[[], bool] = lambda: False):
         self.sessions, self.job_id, self.attempt = sessions, job_id, attempt
         self.cancel_poll_s = cancel_poll_s
+        self.shutting_down = shutting_down
         self._last_check = 0.0
         self._last_progress = 0.0
         self._phase_epoch: tuple[str, int] | None = None
-        self.stop_reason: str | None = None  # "cancelled" or "lost"
+        self.stop_reason: str | None = None  # "cancelled", "lost" or "shutdown"
 
     def _mine(self):
         return (Job.id == self.job_id) & (Job.attempts == self.attempt) & Job.status.in_(("running", "cancelling"))
@@ -79,6 +81,9 @@ class DbCallback(Callback):
         if now - self._last_check < self.cancel_poll_s:
             return False
         self._last_check = now
+        if self.shutting_down():
+            self.stop_reason = "shutdown"
+            return True
         with self.sessions() as s:
             row = s.execute(select(Job.status, Job.attempts).where(Job.id == self.job_id)).one_or_none()
         if row is None or row.attempts != self.attempt or row.status not in ("running", "cancelling"):

@@ -11,6 +11,7 @@ import socket
 import threading
 import traceback
 from pathlib import Path
+from typing import Callable
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -88,8 +89,23 @@ def _requeue_or_fail(sessions, job_id: str, attempt: int, code: str, message: st
     finish(sessions, job_id, attempt, "failed", f"failed: {message}", error=(code, message), trace=trace)
 
 
-def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str) -> str:
-    """Run the job if we can claim it; returns the final status, or 'skipped'."""
+def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message: str) -> bool:
+    """Give the job back (its worker is shutting down); the attempt does not count against max_attempts."""
+    with sessions.begin() as s:
+        mine = (Job.id == job_id) & (Job.attempts == attempt) & (Job.status == "running")
+        if not s.execute(update(Job).where(mine).values(status="queued", worker=None, enqueued_at=None,
+                                                        attempts=Job.attempts - 1)).rowcount:
+            return False
+        s.add(JobEvent(job_id=job_id, type="status", message=message, data={"status": "queued"}))
+    return True
+
+
+def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
+            shutting_down: Callable[[], bool] = lambda: False, enqueue: Callable[[str, int], None] | None = None) -> str:
+    """Run the job if we can claim it; returns the final status, 'requeued', or 'skipped'.
+
+    `shutting_down` is polled between steps: when it turns true the run stops with a checkpoint and the job goes back
+    to the queue (sent again with `enqueue`, or by the reaper) to resume on the next worker."""
     from celery.exceptions import SoftTimeLimitExceeded
 
     from drop_engine.config import TrainConfig
@@ -107,7 +123,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str) ->
         config_data = dict(job.config)
     if settings.worker_threads:
         config_data["threads"] = settings.worker_threads
-    callback = DbCallback(sessions, job_id, attempt, settings.cancel_poll_s)
+    callback = DbCallback(sessions, job_id, attempt, settings.cancel_poll_s, shutting_down)
     heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
     heartbeat.start()
     try:
@@ -136,5 +152,18 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str) ->
         finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written",
                result=summary)
         return "cancelled"
+    if callback.stop_reason == "shutdown":
+        if requeue(sessions, job_id, attempt, "re-queued: its worker is shutting down; will resume from checkpoint"):
+            if enqueue is not None:
+                try:
+                    enqueue(job_id, job.max_runtime_s)
+                    with sessions.begin() as s:
+                        s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
+                except Exception:  # the reaper sends it later
+                    log.exception("could not re-send job %s", job_id)
+            return "requeued"
+        if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
+                  result=summary):
+            return "cancelled"
     log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
     return "lost"

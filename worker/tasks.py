@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import logging
+import os
+import tempfile
 import threading
+from pathlib import Path
 
-from celery.signals import worker_ready, worker_shutdown
+from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
 
 from app.db import make_engine, make_sessionmaker
 from app.settings import get_settings
@@ -17,13 +20,25 @@ celery = make_celery(settings)
 _stop = threading.Event()
 
 
+def _shutdown_marker(main_pid: int) -> Path:
+    return Path(tempfile.gettempdir()) / f"drop-worker-{main_pid}.stopping"
+
+
+def _shutdown_check():
+    """In the pool child: true once the worker's main process is shutting down (warm) or has died."""
+    parent = os.getppid()
+    marker = _shutdown_marker(parent)
+    return lambda: os.getppid() != parent or marker.exists()
+
+
 @celery.task(name=TASK_RUN_JOB)
 def run_job(job_id: str) -> str:
     from .runner import run_job as run
 
     engine = make_engine(settings.sqlalchemy_url)  # in the child process: never share connections across fork
     try:
-        return run(settings, make_sessionmaker(engine), job_id)
+        return run(settings, make_sessionmaker(engine), job_id, _shutdown_check(),
+                   lambda job, runtime: enqueue(celery, settings, job, runtime))
     finally:
         engine.dispose()
 
@@ -44,9 +59,18 @@ def _reaper_loop() -> None:
 
 @worker_ready.connect
 def _start_reaper(**_) -> None:
+    _shutdown_marker(os.getpid()).unlink(missing_ok=True)  # left by a crashed worker that had our pid
     threading.Thread(target=_reaper_loop, daemon=True, name="reaper").start()
 
 
-@worker_shutdown.connect
-def _stop_reaper(**_) -> None:
+@worker_shutting_down.connect
+def _ask_jobs_to_stop(**_) -> None:
+    """Warm shutdown (SIGTERM): running jobs checkpoint and go back to the queue instead of holding the exit."""
     _stop.set()
+    _shutdown_marker(os.getpid()).touch()
+
+
+@worker_shutdown.connect
+def _cleanup(**_) -> None:
+    _stop.set()
+    _shutdown_marker(os.getpid()).unlink(missing_ok=True)

@@ -136,3 +136,23 @@ def test_bad_zip(alice, clean):
         z.writestr("readme.txt", "hi")
     r = alice.post("/v1/datasets", files={"file": ("x.zip", buf.getvalue(), "application/zip")})
     _assert_problem(r, 422, "Minari")
+
+
+def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
+    """4 KB on disk, 880 MB once read: the child runs out of its address space, the API process is untouched."""
+    import asyncio
+
+    from app.validate import Invalid, validate_file
+
+    bomb = tmp_path / "bomb.hdf5"
+    with h5py.File(bomb, "w") as f:
+        f.create_dataset("observations", shape=(20_000_000, 11), dtype="f4", compression="gzip", chunks=(100_000, 11))
+        for key, value in _arrays(10).items():
+            if key != "observations":
+                f.create_dataset(key, data=value)
+    assert bomb.stat().st_size < 100_000
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(Invalid, match="memory"):
+        asyncio.run(validate_file(bomb, out, memory=1024**3, timeout=60, max_bytes=10**7))
+    assert not any(out.iterdir())
