@@ -100,6 +100,19 @@ def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message:
     return True
 
 
+def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int) -> None:
+    """Best effort: a policy that cannot be expressed in ONNX still leaves TorchScript and state_dict."""
+    from .onnx_export import export_onnx
+
+    try:
+        torchscript = Path(result.policy["torchscript"])
+        result.policy["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name("policy.onnx")))
+    except Exception as exc:
+        log.exception("ONNX export of %s failed", job_id)
+        with sessions.begin() as s:
+            s.add(JobEvent(job_id=job_id, type="warning", message=f"ONNX export failed: {type(exc).__name__}: {exc}"))
+
+
 def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
             shutting_down: Callable[[], bool] = lambda: False, enqueue: Callable[[str, int], None] | None = None) -> str:
     """Run the job if we can claim it; returns the final status, 'requeued', or 'skipped'.
@@ -146,6 +159,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
         heartbeat.stop()
     summary = result.to_dict()
     if result.status == "completed":
+        _add_onnx(sessions, job_id, result, dataset.obs_dim)
         finish(sessions, job_id, attempt, "succeeded", "succeeded", result=summary)
         return "succeeded"
     if callback.stop_reason == "cancelled":

@@ -110,12 +110,13 @@ def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
 
 POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
                 "state_dict": ("policy_state_dict.pt", "application/octet-stream"),
+                "onnx": ("policy.onnx", "application/octet-stream"),
                 "metadata": ("metadata.json", "application/json")}
 
 
-@router.get("/policy", summary="The trained policy: TorchScript (obs batch -> actions), state_dict, or metadata",
+@router.get("/policy", summary="The trained policy: TorchScript or ONNX (obs batch -> actions), state_dict, or metadata",
             response_class=FileResponse)
-def job_policy(job_id: str, format: Literal["torchscript", "state_dict", "metadata"] = "torchscript",
+def job_policy(job_id: str, format: Literal["torchscript", "state_dict", "onnx", "metadata"] = "torchscript",
                owner: str = Owner, s: Session = DB, settings: Settings = Config):
     job = owned_job(s, owner, job_id)
     if job.status != "succeeded":

@@ -59,6 +59,14 @@ def test_upload_train_download(alice, worker, hopper_file):
     assert actions.shape == (5, 3) and bool((actions.abs() <= 1).all())
     state = torch.load(io.BytesIO(alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "state_dict"}).content))
     assert any(k.startswith("net.") for k in state)
+    import numpy as np
+    import onnxruntime
+
+    onnx = alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "onnx"})
+    assert onnx.status_code == 200
+    obs = np.random.default_rng(0).normal(size=(4, 11)).astype(np.float32)
+    onnx_actions = onnxruntime.InferenceSession(onnx.content).run(None, {"obs": obs})[0]
+    np.testing.assert_allclose(onnx_actions, policy(torch.from_numpy(obs)).detach().numpy(), atol=1e-5)
     meta = alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "metadata"}).json()
     assert meta["env"] == "hopper" and meta["obs_dim"] == 11
 
