@@ -150,7 +150,8 @@ def _matches(path: Path, cfg: CollectConfig) -> bool:
     try:
         with h5py.File(path, "r") as handle:
             a = handle.attrs
-            return (int(a["seed"]) == cfg.online.seed and int(a["train_steps"]) == cfg.online.steps
+            return (str(a["env_name"]) == get_env(cfg.online.env).gym_id(cfg.online.version)
+                    and int(a["seed"]) == cfg.online.seed and int(a["train_steps"]) == cfg.online.steps
                     and int(a["transitions_per_policy"]) == cfg.transitions)
     except (OSError, KeyError):
         return False
