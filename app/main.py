@@ -6,11 +6,13 @@ import logging
 from fastapi import FastAPI
 
 from . import problems
+from .limits import BodyLimit
 from .db import make_engine, make_sessionmaker, schema_problem
 from .routers import datasets, health, jobs, outputs
 from .settings import Settings, get_settings
 
 log = logging.getLogger("drop.api")
+JSON_BODY_LIMIT = 1 << 20
 
 
 class NotMigrated(RuntimeError):
@@ -27,7 +29,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if reason:
         engine.dispose()
         raise NotMigrated(reason)
+    # JSON bodies are small; only the dataset upload may be large, and it enforces its own limit while streaming.
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)")
+    app.add_middleware(BodyLimit, limit=JSON_BODY_LIMIT, exempt={("POST", "/v1/datasets")})
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)

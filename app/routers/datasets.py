@@ -39,7 +39,7 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
         except Invalid as exc:
             raise Problem(422, "invalid_dataset", str(exc)) from None
         report = result["report"]
-        row = Dataset(id=dataset_id, owner_id=owner, name=upload.filename, format=result["format"],
+        row = Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
                       sha256=upload.sha256, size_bytes=upload.size, path=str((target / result["file"]).resolve()),
                       env=report.get("env"), obs_dim=report["obs_dim"], act_dim=report["act_dim"], report=report)
         await run_in_threadpool(_save, s, row)  # a busy SQLite must not block the event loop
@@ -68,7 +68,7 @@ def get_dataset(dataset_id: str, owner: str = Owner, s: Session = DB) -> dict:
 
 @router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset (409 while a job uses it)")
 def delete_dataset(dataset_id: str, owner: str = Owner, s: Session = DB, settings: Settings = Config) -> Response:
-    row = owned_dataset(s, owner, dataset_id)
+    row = owned_dataset(s, owner, dataset_id, lock=True)  # serialises with job creation on this dataset
     busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")

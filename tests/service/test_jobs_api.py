@@ -73,6 +73,17 @@ def test_errors_are_problem_json(client, alice):
         assert {"type", "title", "status", "detail", "code"} <= r.json().keys()
 
 
+def test_oversized_json_is_413(alice, dataset):
+    r = alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "overrides": {"x": "y" * 2_000_000}})
+    assert r.status_code == 413 and r.headers["content-type"] == PROBLEM
+
+    def chunks():
+        yield b'{"dataset_id": "' + b"x" * 2_000_000 + b'"}'
+
+    r = alice.post("/v1/jobs", content=chunks(), headers={"Content-Type": "application/json"})
+    assert r.status_code == 413 and r.headers["content-type"] == PROBLEM
+
+
 def test_health(client):
     assert client.get("/healthz").json() == {"status": "ok"}
     assert client.get("/readyz").json() == {"status": "ready"}
