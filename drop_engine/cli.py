@@ -26,9 +26,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     from .trainer import train
 
     try:
-        config = build_config(args.algorithm, args.env, args.preset, args.task, dict(args.set or []), args.seed, args.device)
+        overrides = dict(args.set or [])
         if args.threads:
-            config.threads = args.threads
+            overrides["threads"] = args.threads
+        config = build_config(args.algorithm, args.env, args.preset, args.task, overrides, args.seed, args.device)
     except ConfigError as exc:
         print(f"drop train: {exc}", file=sys.stderr)
         return 2

@@ -15,6 +15,10 @@ PenaltyFn = Literal["log", "tanh", "tanh_shift"]
 PRESETS = ("paper", "cpu", "smoke")
 
 
+class ConfigError(ValueError):
+    """A configuration that cannot be built; the message names the field."""
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -162,10 +166,6 @@ def preset_settings(preset: str, env: str) -> dict[str, Any]:
             "dice": {"hidden": (16, 16), "batch_size": 64, "pretrain_steps": 10, "steps_per_epoch": 5},
         }
     raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be built; the message names the field."""
 
 
 def _merge(base: dict, extra: Mapping) -> dict:
