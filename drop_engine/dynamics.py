@@ -45,13 +45,17 @@ class GaussianEnsemble(nn.Module):
         self.in_mean.copy_(torch.as_tensor(norm.mean))
         self.in_std.copy_(torch.as_tensor(norm.std))
 
-    def forward(self, obs: torch.Tensor, act: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and log-variance, (B, N, 1 + obs_dim); inputs (N, d) shared or (B, N, d) per member."""
+    def forward(
+        self, obs: torch.Tensor, act: torch.Tensor, members: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-variance, (B, N, 1 + obs_dim); inputs (N, d) shared or (B, N, d) per member.
+
+        With `members` only those members run, and the leading dimension is len(members)."""
         x = (torch.cat([obs, act], -1) - self.in_mean) / self.in_std
         for layer in self.body:
-            x = F.silu(layer(x))
-        mean = self.mean_head(x)
-        logvar = self.logvar_head(x)
+            x = F.silu(layer(x, members))
+        mean = self.mean_head(x, members)
+        logvar = self.logvar_head(x, members)
         logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
         logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
         return mean, logvar

@@ -62,14 +62,16 @@ class ReplayBuffer:
 
 
 def sample_members(
-    model: GaussianEnsemble, obs: torch.Tensor, act: torch.Tensor
+    model: GaussianEnsemble, obs: torch.Tensor, act: torch.Tensor, all_members: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One model step per sample from a uniformly drawn elite: (reward, next_obs, elite position, logvar of all)."""
-    mean, logvar = model(obs, act)
+    """One model step per sample from a uniformly drawn elite: (reward, next_obs, elite position, logvar).
+
+    logvar covers all members when `all_members` (MOPO's penalty needs them), else only the elites."""
+    mean, logvar = model(obs, act, None if all_members else model.elites)
     n = obs.shape[0]
     pos = torch.randint(0, model.num_elites, (n,), device=obs.device)
     rows = torch.arange(n, device=obs.device)
-    member = model.elites[pos]
+    member = model.elites[pos] if all_members else pos
     mu, lv = mean[member, rows], logvar[member, rows]
     sample = mu + torch.exp(0.5 * lv) * torch.randn_like(mu)
     return sample[:, 0], obs + sample[:, 1:], pos, logvar
@@ -92,7 +94,7 @@ def model_rollout(
     pens, taus, rews, added = [], [], [], 0
     for _ in range(horizon):
         act = actor.act(obs)
-        rew, next_obs, pos, logvar = sample_members(model, obs, act)
+        rew, next_obs, pos, logvar = sample_members(model, obs, act, all_members=algorithm == "mopo")
         tau = None
         if dice is not None:
             tau = dice.tau(obs, act).gather(0, pos.unsqueeze(0)).squeeze(0)

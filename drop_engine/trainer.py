@@ -173,8 +173,8 @@ class Trainer:
         nxt, alive = [], []
         for lo in range(0, len(self.real), chunk):
             o, a = obs[lo : lo + chunk], act[lo : lo + chunk]
-            mean, _ = self.model(o, a)
-            n = o + mean[elites, :, 1:]
+            mean, _ = self.model(o, a, elites)
+            n = o + mean[..., 1:]
             nxt.append(n)
             alive.append((~self.termination(o, a, n)).float())
         self.successors, self.successor_alive = torch.cat(nxt, 1), torch.cat(alive, 1)
