@@ -121,15 +121,15 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
     to the queue (sent again with `enqueue`, or by the reaper) to resume on the next worker."""
     from celery.exceptions import SoftTimeLimitExceeded
 
+    name = worker_name()
+    attempt = claim(sessions, job_id, name)  # before the slow engine imports, so the status turns at once
+    if attempt is None:
+        log.info("job %s not claimable (already taken, finished or cancelled)", job_id)
+        return "skipped"
     from drop_engine.config import TrainConfig
     from drop_engine.data import DatasetError
     from drop_engine.trainer import train
 
-    name = worker_name()
-    attempt = claim(sessions, job_id, name)
-    if attempt is None:
-        log.info("job %s not claimable (already taken, finished or cancelled)", job_id)
-        return "skipped"
     with sessions() as s:
         job = s.get(Job, job_id)
         dataset = s.get(Dataset, job.dataset_id) if job.dataset_id else None

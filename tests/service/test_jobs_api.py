@@ -87,3 +87,5 @@ def test_oversized_json_is_413(alice, dataset):
 def test_health(client):
     assert client.get("/healthz").json() == {"status": "ok"}
     assert client.get("/readyz").json() == {"status": "ready"}
+    spec = client.get("/openapi.json").json()
+    assert "/v1/jobs/{job_id}/policy" in spec["paths"] and "/v1/datasets" in spec["paths"]

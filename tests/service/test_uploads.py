@@ -101,6 +101,17 @@ def test_raw_body_upload_and_name(alice, hopper_file):
     assert alice.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
 
 
+def test_npz_upload(alice, tmp_path):
+    path = tmp_path / "data.npz"
+    np.savez(path, **_arrays(40))
+    r = alice.post("/v1/datasets", content=path.read_bytes())
+    assert r.status_code == 201, r.text
+    report = r.json()["report"]
+    assert r.json()["format"] == "npz" and report["transitions"] == 39  # the last row has no next observation
+    assert any(w.startswith("next_observations: missing") for w in report["warnings"])
+    assert alice.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
+
+
 def _minari_zip(n_episodes=3, length=20) -> bytes:
     rng = np.random.default_rng(1)
     h5 = io.BytesIO()
