@@ -1,0 +1,31 @@
+"""`drop train` and `drop evaluate` as a newcomer runs them."""
+import json
+
+from drop_engine.cli import main
+from drop_engine.data import save_hdf5
+
+
+def test_train_then_evaluate(tmp_path, hopper_arrays, capsys):
+    data = tmp_path / "hopper.hdf5"
+    save_hdf5(data, hopper_arrays, {"env_name": "Hopper-v4"})
+    out = tmp_path / "run"
+    code = main(["train", "--dataset", str(data), "--env", "hopper", "--algorithm", "mopo", "--preset", "smoke",
+                 "--set", "epochs=1", "--set", "eval_episodes=1", "--threads", "1", "--out", str(out)])
+    assert code == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["status"] == "completed" and printed["epochs"] == 1
+    assert json.loads((out / "summary.json").read_text())["evaluations"][0]["epoch"] == 1
+
+    assert main(["evaluate", "--policy", printed["policy"]["torchscript"], "--env", "hopper", "--episodes", "2"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert len(result["returns"]) == 2 and result["normalized_score"] < 100
+
+
+def test_train_rejects_bad_input(tmp_path, capsys):
+    bad = tmp_path / "bad.hdf5"
+    save_hdf5(bad, {"observations": [[0.0] * 11] * 3, "actions": [[0.0] * 3] * 2, "rewards": [0.0] * 3,
+                    "terminals": [0, 0, 0]})
+    assert main(["train", "--dataset", str(bad), "--preset", "smoke", "--out", str(tmp_path / "r")]) == 2
+    assert "actions: has 2 rows but observations has 3" in capsys.readouterr().err
+    assert main(["train", "--dataset", str(bad), "--set", "dice.rate=1", "--out", str(tmp_path / "r")]) == 2
+    assert "dice.rate" in capsys.readouterr().err
