@@ -45,7 +45,9 @@ def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str
 
 def load_policy(path: str | Path):
     """Load an exported TorchScript policy as a numpy -> numpy function."""
-    module = torch.jit.load(str(path), map_location="cpu").eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        module = torch.jit.load(str(path), map_location="cpu").eval()
 
     def act(obs):
         with torch.no_grad():
