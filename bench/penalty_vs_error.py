@@ -1,0 +1,135 @@
+"""The paper's Fig. 2: does each penalty track the model's true error?
+
+For offline (s, a) from the dataset and model-rollout (s, a) of a trained DROP run, the true error
+||T^(s, a) - T(s, a)|| over [r, s'] is measured by stepping the real simulator, and set beside DROP's penalty
+eta * g(tau_k(s, a)) and MOPO's u(s, a) from the same ensemble. Writes JSON, a markdown summary and a scatter plot.
+
+    python bench/penalty_vs_error.py --dataset hopper-medium.hdf5 --run runs/hopper-drop [--samples 10000]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from scipy import stats
+
+from drop_engine.checkpoint import load_latest
+from drop_engine.config import TrainConfig
+from drop_engine.data import load_dataset
+from drop_engine.penalties import ratio_penalty, uncertainty_penalty
+from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.trainer import Trainer
+from drop_engine.true_dynamics import true_step
+
+
+def restore(dataset: str, run: str) -> tuple[Trainer, object]:
+    state = load_latest(Path(run) / "checkpoints")
+    if state is None:
+        raise SystemExit(f"no checkpoint under {run}/checkpoints")
+    cfg = TrainConfig.model_validate(state["config"])
+    if cfg.algorithm != "drop":
+        raise SystemExit(f"{run} is a {cfg.algorithm} run; DROP's ratio estimators are needed")
+    data = load_dataset(dataset, env=cfg.env)
+    trainer = Trainer(data, cfg, Path(run) / ".bench")
+    trainer.load_state_dict(state)
+    return trainer, data
+
+
+@torch.no_grad()
+def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dict[str, np.ndarray]:
+    cfg, model = trainer.cfg, trainer.model
+    o, a = torch.as_tensor(obs), torch.as_tensor(act)
+    mean, logvar = model(o, a)
+    elite_mean = mean[model.elites].mean(0).numpy()
+    true_r, true_next = true_step(cfg.env, obs, act, qpos, qvel, cfg.env_version)
+    truth = np.concatenate([true_r[:, None], true_next - obs], 1)
+    drop = (cfg.penalty.eta * ratio_penalty(trainer.dice.tau(o, a), cfg.penalty)).mean(0).numpy()
+    mopo = (cfg.penalty.mopo_lambda * uncertainty_penalty(logvar)).numpy()
+    return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo}
+
+
+def correlations(rows: dict[str, np.ndarray]) -> dict:
+    out = {}
+    for name in ("drop", "mopo"):
+        out[name] = {"spearman": float(stats.spearmanr(rows[name], rows["error"]).statistic),
+                     "pearson": float(stats.pearsonr(rows[name], rows["error"]).statistic)}
+    return out
+
+
+def scatter(groups: dict[str, dict[str, np.ndarray]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, name in zip(axes, ("drop", "mopo")):
+        for label, rows in groups.items():
+            p = rows[name]
+            p = (p - p.min()) / max(p.max() - p.min(), 1e-12)
+            ax.scatter(rows["error"], p, s=2, alpha=0.3, label=label)
+        ax.set_xlabel("true model error ||T^(s,a) - T(s,a)||")
+        ax.set_title(f"{name.upper()} penalty (normalised)")
+        ax.legend(markerscale=5)
+    axes[0].set_ylabel("penalty, scaled to [0, 1]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--run", required=True, help="a DROP run directory (its newest checkpoint is used)")
+    p.add_argument("--samples", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="bench/results")
+    args = p.parse_args(argv)
+    trainer, data = restore(args.dataset, args.run)
+    cfg = trainer.cfg
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+
+    idx = rng.choice(len(data), size=min(args.samples, len(data)), replace=False)
+    qpos = qvel = None  # the recorded simulator state, where the file has it
+    with h5py.File(args.dataset, "r") as f:
+        if "infos/qpos" in f and len(f["infos/qpos"]) == len(data):
+            qpos, qvel = f["infos/qpos"][()][idx], f["infos/qvel"][()][idx]
+    offline = penalties_and_error(trainer, data.observations[idx], data.actions[idx], qpos, qvel)
+
+    buffer = ReplayBuffer(args.samples * cfg.horizon, data.obs_dim, data.act_dim)
+    starts = trainer.real.sample(args.samples)[0]
+    model_rollout(trainer.sac.actor, trainer.model, trainer.dice, starts, cfg.horizon, "drop", cfg.penalty,
+                  trainer.termination, buffer)
+    obs, act, *_ = buffer.take(torch.randperm(len(buffer))[: args.samples])
+    rollout = penalties_and_error(trainer, obs.numpy(), act.numpy())
+
+    groups = {"offline": offline, "model rollout": rollout}
+    both = {k: np.concatenate([offline[k], rollout[k]]) for k in offline}
+    result = {"env": cfg.env, "run": args.run, "dataset": args.dataset, "samples": args.samples,
+              "dataset_attrs": {k: str(v) for k, v in data.attrs.items()},
+              "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
+                               "all": correlations(both)},
+              "mean_error": {"offline": float(offline["error"].mean()), "model_rollout": float(rollout["error"].mean())}}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"penalty_vs_error_{cfg.env}"
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    scatter(groups, out / f"{stem}.png")
+    lines = [f"# Penalty vs true model error ({cfg.env}, {args.samples} offline + {args.samples} rollout samples)", "",
+             "| samples | penalty | Spearman | Pearson |", "|---|---|---|---|"]
+    for group, corr in result["correlations"].items():
+        for name, c in corr.items():
+            lines.append(f"| {group} | {name} | {c['spearman']:.3f} | {c['pearson']:.3f} |")
+    (out / f"{stem}.md").write_text("\n".join(lines) + f"\n\n![scatter]({stem}.png)\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
