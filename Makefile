@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test bench-data clean
+.PHONY: install run test bench-data bench-speed bench-table bench-penalty clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,17 @@ bench-data: $(STAMP)
 	for env in $(BENCH_ENVS); do \
 		$(BIN)/drop collect --env $$env --out "$$out" --kinds random,medium,medium-replay,medium-expert || exit 1; \
 	done
+
+# Benchmarks (on demand, never in CI); results land in bench/results/.
+bench-speed: $(STAMP)
+	$(BIN)/python bench/engine_speed.py
+
+bench-table: $(STAMP)
+	$(BIN)/python bench/paper_table.py --envs $(BENCH_ENVS)
+
+# Needs a finished DROP run: make bench-penalty RUN=runs/hopper-drop DATASET=.../hopper-medium.hdf5
+bench-penalty: $(STAMP)
+	$(BIN)/python bench/penalty_vs_error.py --run $(RUN) --dataset $(DATASET)
 
 clean:
 	rm -rf $(VENV) .pytest_cache

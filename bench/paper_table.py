@@ -1,0 +1,113 @@
+"""The paper's Table 1 at CPU scale: DROP, MOPO, MBPO (same loop, same budget) and behaviour cloning.
+
+Reads `ENV-KIND.hdf5` from the `make bench-data` cache, trains every (dataset, algorithm, seed) not yet finished
+(an interrupted run resumes from its checkpoint), and writes the final and best D4RL normalised scores, mean and std
+over seeds, beside the behaviour policy's own score.
+
+    python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drop_engine.bc import evaluate_actor, train_bc
+from drop_engine.config import build_config
+from drop_engine.data import load_dataset
+from drop_engine.trainer import train
+
+ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
+CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/bench-data"))
+
+
+def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args) -> dict:
+    run_dir = Path(args.runs) / f"{env}-{kind}" / f"{algorithm}-{seed}"
+    done = run_dir / "result.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    run_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    if algorithm == "bc":
+        data = load_dataset(data_path, env=env)
+        evaluation = evaluate_actor(train_bc(data, args.bc_steps, seed=seed), env, args.episodes, seed=10_000 + seed)
+        record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": []}
+    else:
+        overrides = dict(kv.split("=", 1) for kv in args.set)
+        cfg = build_config(algorithm, env, args.preset, task=kind, overrides=overrides, seed=seed, device=args.device)
+        result = train(data_path, cfg, run_dir)
+        if result.status != "completed":
+            raise SystemExit(f"{run_dir}: stopped before the end")
+        record = {"final": result.last_score, "best": result.best_score, "evaluations": result.evaluations}
+    record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed,
+                   "seconds": time.perf_counter() - start})
+    done.write_text(json.dumps(record, indent=2))
+    return record
+
+
+def behaviour_score(path: Path) -> float | None:
+    attrs = load_dataset(path).attrs
+    value = attrs.get("dataset_normalized_score")
+    return float(value) if value is not None else None
+
+
+def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
+    def cell(scores: list[float]) -> str:
+        return f"{np.mean(scores):.1f} ± {np.std(scores):.1f}" if scores else "-"
+
+    lines = ["| dataset | behaviour | " + " | ".join(f"{a.upper()} final | {a.upper()} best" for a in algorithms) + " |",
+             "|---|---|" + "---|---|" * len(algorithms)]
+    for dataset in behaviour:
+        row = [dataset, f"{behaviour[dataset]:.1f}" if behaviour[dataset] is not None else "-"]
+        for algo in algorithms:
+            runs = [r for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
+            row += [cell([r["final"] for r in runs]), cell([r["best"] for r in runs])]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=str(CACHE), help="directory of ENV-KIND.hdf5 files (make bench-data)")
+    p.add_argument("--envs", nargs="+", default=["hopper", "walker2d", "halfcheetah"])
+    p.add_argument("--kinds", nargs="+", default=["random", "medium", "medium-replay", "medium-expert"])
+    p.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS)
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--preset", default="cpu")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for all runs")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--episodes", type=int, default=10, help="evaluation episodes for BC")
+    p.add_argument("--bc-steps", type=int, default=20_000)
+    p.add_argument("--runs", default=str(Path.home() / ".cache/drop-rl/bench-runs"))
+    p.add_argument("--out", default="bench/results")
+    args = p.parse_args(argv)
+
+    records, behaviour = [], {}
+    for env in args.envs:
+        for kind in args.kinds:
+            path = Path(args.data) / f"{env}-{kind}.hdf5"
+            if not path.exists():
+                raise SystemExit(f"{path} is missing: run `make bench-data` first")
+            behaviour[f"{env}-{kind}"] = behaviour_score(path)
+            for algorithm in args.algorithms:
+                for seed in args.seeds:
+                    records.append(run_one(path, env, kind, algorithm, seed, args))
+                    print(f"{env}-{kind} {algorithm} seed {seed}: final {records[-1]['final']:.1f}", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "paper_table.json").write_text(json.dumps({"preset": args.preset, "seeds": args.seeds,
+                                                      "records": records}, indent=2))
+    text = (f"# Table 1 at CPU scale (preset `{args.preset}`, seeds {args.seeds}; D4RL normalised scores, "
+            f"mean ± std over seeds)\n\n" + table(records, behaviour, args.algorithms))
+    (out / "paper_table.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

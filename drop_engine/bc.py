@@ -1,0 +1,37 @@
+"""Behaviour cloning, the floor every offline method should clear: regress the data's actions from its states."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .data import Dataset, Normalizer
+from .evaluate import Evaluation, evaluate
+from .sac import Actor
+
+
+def train_bc(data: Dataset, steps: int = 20_000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0,
+             hidden: tuple[int, ...] = (256, 256)) -> Actor:
+    """An actor whose deterministic action tanh(mu(s)) fits the dataset's actions in mean squared error."""
+    torch.manual_seed(seed)
+    actor = Actor(data.obs_dim, data.act_dim, hidden)
+    norm = Normalizer.fit(data.observations)
+    actor.norm.set(norm.mean, norm.std)
+    obs = torch.as_tensor(data.observations)
+    act = torch.as_tensor(np.clip(data.actions, -1.0, 1.0))
+    optim = torch.optim.Adam(actor.parameters(), lr=lr)
+    gen = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        idx = torch.randint(0, len(obs), (batch_size,), generator=gen)
+        loss = (actor.act(obs[idx], deterministic=True) - act[idx]).pow(2).mean()
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+    return actor
+
+
+def evaluate_actor(actor: Actor, env: str, episodes: int, seed: int, version: str = "v4") -> Evaluation:
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return actor.act(torch.as_tensor(obs), deterministic=True).numpy()
+
+    return evaluate(policy, env, episodes, seed, version)
