@@ -26,8 +26,10 @@ def reap(sessions: sessionmaker[Session], settings: Settings, enqueue: Enqueue) 
     with sessions() as s:
         dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts, Job.heartbeat_at, Job.max_runtime_s)
                          .where(Job.status.in_(("running", "cancelling")), Job.heartbeat_at < stale)).all()
+        # Never sent (broker down at creation: give the API 10 s to send it itself) or handed back by a worker.
         unsent = s.execute(select(Job.id, Job.max_runtime_s).where(
-            Job.status == "queued", Job.enqueued_at.is_(None), Job.created_at < now - timedelta(seconds=10))).all()
+            Job.status == "queued", Job.enqueued_at.is_(None),
+            (Job.created_at < now - timedelta(seconds=10)) | (Job.attempts > 0) | Job.started_at.is_not(None))).all()
     for row in dead:
         seen = (Job.id == row.id) & (Job.attempts == row.attempts) & (Job.status == row.status)
         if row.status == "cancelling":

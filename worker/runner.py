@@ -113,14 +113,23 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int
             s.add(JobEvent(job_id=job_id, type="warning", message=f"ONNX export failed: {type(exc).__name__}: {exc}"))
 
 
+def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:
+    """A shutting-down worker got the message: leave the job queued and mark it unsent, for a reaper to send again."""
+    with sessions.begin() as s:
+        s.execute(update(Job).where(Job.id == job_id, Job.status == "queued").values(enqueued_at=None))
+
+
 def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
-            shutting_down: Callable[[], bool] = lambda: False, enqueue: Callable[[str, int], None] | None = None) -> str:
+            shutting_down: Callable[[], bool] = lambda: False) -> str:
     """Run the job if we can claim it; returns the final status, 'requeued', or 'skipped'.
 
     `shutting_down` is polled between steps: when it turns true the run stops with a checkpoint and the job goes back
-    to the queue (sent again with `enqueue`, or by the reaper) to resume on the next worker."""
+    to the queue, to resume from that checkpoint on the next worker."""
     from celery.exceptions import SoftTimeLimitExceeded
 
+    if shutting_down():
+        release_unclaimed(sessions, job_id)
+        return "skipped"
     name = worker_name()
     attempt = claim(sessions, job_id, name)  # before the slow engine imports, so the status turns at once
     if attempt is None:
@@ -167,14 +176,9 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
                result=summary)
         return "cancelled"
     if callback.stop_reason == "shutdown":
+        # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
+        # next worker to start (or of any live one) sends it, because enqueued_at is cleared.
         if requeue(sessions, job_id, attempt, "re-queued: its worker is shutting down; will resume from checkpoint"):
-            if enqueue is not None:
-                try:
-                    enqueue(job_id, job.max_runtime_s)
-                    with sessions.begin() as s:
-                        s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
-                except Exception:  # the reaper sends it later
-                    log.exception("could not re-send job %s", job_id)
             return "requeued"
         if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
                   result=summary):

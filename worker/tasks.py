@@ -37,8 +37,7 @@ def run_job(job_id: str) -> str:
 
     engine = make_engine(settings.sqlalchemy_url)  # in the child process: never share connections across fork
     try:
-        return run(settings, make_sessionmaker(engine), job_id, _shutdown_check(),
-                   lambda job, runtime: enqueue(celery, settings, job, runtime))
+        return run(settings, make_sessionmaker(engine), job_id, _shutdown_check())
     finally:
         engine.dispose()
 
@@ -48,7 +47,9 @@ def _reaper_loop() -> None:
 
     engine = make_engine(settings.sqlalchemy_url)
     sessions = make_sessionmaker(engine)
-    while not _stop.wait(settings.reap_every_s):
+    first = True
+    while first or not _stop.wait(settings.reap_every_s):  # a pass at start-up picks up jobs a stopped worker left
+        first = False
         try:
             sent = reap(sessions, settings, lambda job_id, rt: enqueue(celery, settings, job_id, rt))
             if sent:
