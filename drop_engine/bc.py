@@ -6,6 +6,7 @@ import torch
 
 from .data import Dataset, Normalizer
 from .evaluate import Evaluation, evaluate
+from .nn import adam
 from .sac import Actor
 
 
@@ -18,7 +19,7 @@ def train_bc(data: Dataset, steps: int = 20_000, batch_size: int = 256, lr: floa
     actor.norm.set(norm.mean, norm.std)
     obs = torch.as_tensor(data.observations)
     act = torch.as_tensor(np.clip(data.actions, -1.0, 1.0))
-    optim = torch.optim.Adam(actor.parameters(), lr=lr)
+    optim = adam(actor.parameters(), lr)
     gen = torch.Generator().manual_seed(seed)
     for _ in range(steps):
         idx = torch.randint(0, len(obs), (batch_size,), generator=gen)

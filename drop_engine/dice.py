@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from .config import DiceConfig
-from .nn import EnsembleMLP, Standardize
+from .nn import EnsembleMLP, Standardize, adam
 
 
 class GradientDice(nn.Module):
@@ -25,8 +25,8 @@ class GradientDice(nn.Module):
         # neither penalises nor rewards anything.
         nn.init.constant_(self.tau_net.out.bias, 1.0)
         self.nu = nn.Parameter(torch.zeros(members, 1))
-        self.tau_optim = torch.optim.Adam(self.tau_net.parameters(), lr=cfg.lr)
-        self.f_optim = torch.optim.Adam([*self.f_net.parameters(), self.nu], lr=cfg.lr)
+        self.tau_optim = adam(self.tau_net.parameters(), cfg.lr)
+        self.f_optim = adam([*self.f_net.parameters(), self.nu], cfg.lr)
 
     def _input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return torch.cat([self.norm(obs), act], -1)

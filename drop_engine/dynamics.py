@@ -12,7 +12,7 @@ from torch import nn
 
 from .config import DynamicsConfig
 from .data import Dataset, Normalizer, split_sizes
-from .nn import EnsembleLinear
+from .nn import EnsembleLinear, adam
 
 
 class Swish(nn.Module):
@@ -116,7 +116,7 @@ def train_dynamics(
     if n_hold == 0:  # tiny datasets: judge on the training rows
         hold_idx = train_idx
     h_obs, h_act, h_tgt = obs[hold_idx], act[hold_idx], target[hold_idx]
-    optim = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    optim = adam(model.parameters(), cfg.lr)
     B = model.members
     boot = torch.as_tensor(train_idx[rng.integers(0, n_train, size=(B, n_train))], device=device)
 

@@ -80,3 +80,8 @@ class Standardize(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.mean) / self.std
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam with the fused kernel (one pass over all parameters instead of several per tensor)."""
+    return torch.optim.Adam(params, lr=lr, fused=True)

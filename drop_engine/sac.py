@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import SACConfig
-from .nn import EnsembleMLP, Standardize, mlp, soft_update
+from .nn import EnsembleMLP, Standardize, adam, mlp, soft_update
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
@@ -62,9 +62,9 @@ class SAC(nn.Module):
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = nn.Parameter(torch.zeros(()))
         self.target_entropy = float(cfg.target_entropy if cfg.target_entropy is not None else -act_dim)
-        self.actor_optim = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        self.critic_optim = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
-        self.alpha_optim = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.actor_optim = adam(self.actor.parameters(), cfg.actor_lr)
+        self.critic_optim = adam(self.critic.parameters(), cfg.critic_lr)
+        self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)
 
     def set_obs_normalizer(self, mean, std) -> None:
         for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
