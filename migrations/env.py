@@ -1,6 +1,5 @@
 """Alembic environment: the URL comes from the Config (set by `drop db upgrade`) or else from DROP_ settings."""
 from alembic import context
-from sqlalchemy import pool
 
 from app.db import make_engine
 from app.models import Base

@@ -85,7 +85,7 @@ class Heartbeat(threading.Thread):
         self.stopped.set()
 
 
-def _requeue_or_fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:
+def _fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:
     finish(sessions, job_id, attempt, "failed", f"failed: {message}", error=(code, message), trace=trace)
 
 
@@ -125,8 +125,6 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
 
     `shutting_down` is polled between steps: when it turns true the run stops with a checkpoint and the job goes back
     to the queue, to resume from that checkpoint on the next worker."""
-    from celery.exceptions import SoftTimeLimitExceeded
-
     if shutting_down():
         release_unclaimed(sessions, job_id)
         return "skipped"
@@ -135,10 +133,6 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
     if attempt is None:
         log.info("job %s not claimable (already taken, finished or cancelled)", job_id)
         return "skipped"
-    from drop_engine.config import TrainConfig
-    from drop_engine.data import DatasetError
-    from drop_engine.trainer import train
-
     with sessions() as s:
         job = s.get(Job, job_id)
         dataset = s.get(Dataset, job.dataset_id) if job.dataset_id else None
@@ -149,31 +143,43 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
     heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
     heartbeat.start()
     try:
+        return _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback)
+    finally:
+        heartbeat.stop()
+
+
+def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Dataset | None, config_data: dict,
+                      settings: Settings, attempt: int, callback: DbCallback) -> str:
+    """Train, then record how it ended; every write is fenced by `attempt`."""
+    from celery.exceptions import SoftTimeLimitExceeded
+
+    from drop_engine.config import TrainConfig
+    from drop_engine.data import DatasetError
+    from drop_engine.trainer import train
+
+    job_id = job.id
+    try:
         if dataset is None or not Path(dataset.path).is_file():
             raise DatasetError("file: the job's dataset was deleted")
         result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback)
     except SoftTimeLimitExceeded:
-        _requeue_or_fail(sessions, job_id, attempt, "timeout",
-                         f"the attempt ran past max_runtime_s={job.max_runtime_s}", traceback.format_exc())
+        _fail(sessions, job_id, attempt, "timeout", f"the attempt ran past max_runtime_s={job.max_runtime_s}",
+              traceback.format_exc())
         return "failed"
     except DatasetError as exc:
-        _requeue_or_fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
+        _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
         return "failed"
     except Exception as exc:
         log.exception("job %s failed", job_id)
-        _requeue_or_fail(sessions, job_id, attempt, "training_error", f"{type(exc).__name__}: {exc}",
-                         traceback.format_exc())
+        _fail(sessions, job_id, attempt, "training_error", f"{type(exc).__name__}: {exc}", traceback.format_exc())
         return "failed"
-    finally:
-        heartbeat.stop()
-    summary = result.to_dict()
     if result.status == "completed":
         _add_onnx(sessions, job_id, result, dataset.obs_dim)
-        finish(sessions, job_id, attempt, "succeeded", "succeeded", result=summary)
+        finish(sessions, job_id, attempt, "succeeded", "succeeded", result=result.to_dict())
         return "succeeded"
     if callback.stop_reason == "cancelled":
         finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written",
-               result=summary)
+               result=result.to_dict())
         return "cancelled"
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
@@ -181,7 +187,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
         if requeue(sessions, job_id, attempt, "re-queued: its worker is shutting down; will resume from checkpoint"):
             return "requeued"
         if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
-                  result=summary):
+                  result=result.to_dict()):
             return "cancelled"
     log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
     return "lost"
