@@ -43,6 +43,12 @@ def test_upload_train_download(alice, worker, hopper_file):
     assert frames[-1].startswith("event: end") and len(frames) == len(events) + 1
     assert json.loads(frames[0].split("data: ", 1)[1])["id"] == events[0]["id"]
 
+    last = events[-2]["id"]  # a reconnecting client resumes after the last event it saw
+    with alice.stream("GET", f"/v1/jobs/{job['id']}/events",
+                      headers={"Accept": "text/event-stream", "Last-Event-ID": str(last)}) as stream:
+        resumed = [f for f in "".join(stream.iter_text()).split("\n\n") if f.strip()]
+    assert len(resumed) == 2 and resumed[0].startswith(f"id: {events[-1]['id']}\n")
+
     metrics = alice.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "sac/critic_loss"}).json()["data"]
     assert metrics and all(m["name"] == "sac/critic_loss" for m in metrics)
     evals = alice.get(f"/v1/jobs/{job['id']}/evaluations").json()["data"]
