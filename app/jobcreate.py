@@ -23,7 +23,7 @@ class JobRequest(BaseModel):
     task: str | None = Field(None, description="dataset kind (random, medium, ...) selecting the paper's settings")
     overrides: dict[str, Any] = Field(default_factory=dict, description='dotted keys, e.g. {"epochs": 50}')
     seed: int = Field(0, ge=0, le=2**31 - 1)
-    max_runtime_s: int | None = Field(None, ge=60, le=30 * 24 * 3600)
+    max_runtime_s: int | None = Field(None, ge=5, le=30 * 24 * 3600, description="time limit of one attempt")
 
 
 def _invalid(code: str, detail: str, field: str) -> Problem:

@@ -41,3 +41,13 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     job = alice.get(f"/v1/jobs/{queued['id']}").json()
     assert job["status"] == "cancelled" and job["attempts"] == 0 and job["started_at"] is None
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def test_attempt_past_max_runtime_fails_with_timeout(alice, worker, hopper_file):
+    ds = alice.upload(hopper_file).json()
+    job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "max_runtime_s": 8,
+                                       "overrides": {"epochs": 500}}).json()
+    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
+    assert done["status"] == "failed" and done["error"]["code"] == "timeout", done
+    assert "max_runtime_s=8" in done["error"]["message"]
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
