@@ -14,9 +14,9 @@ COPY app ./app
 COPY worker ./worker
 COPY migrations ./migrations
 COPY alembic.ini ./
-# The CPU build of torch; install a CUDA build of the same version on GPU hosts.
-RUN pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0 \
-    && pip install -c constraints.txt -e .
+# torch==2.13.0 from constraints.txt; point PIP_EXTRA_INDEX_URL at a CPU-only wheel index for a smaller image.
+ARG PIP_EXTRA_INDEX_URL=
+RUN pip install -c constraints.txt -e .
 
 USER drop
 ENV DROP_DATA_DIR=/data

@@ -23,7 +23,7 @@ class Problem(Exception):
 
 def problem_response(status: int, code: str, detail: str, headers: dict | None = None, **extra) -> JSONResponse:
     body = {
-        "type": f"https://drop-rl.dev/problems/{code}",
+        "type": f"urn:drop-rl:problem:{code}",
         "title": HTTPStatus(status).phrase,
         "status": status,
         "detail": detail,
