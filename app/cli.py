@@ -69,10 +69,18 @@ def _run_api(host: str, port: int) -> int:
 
 
 def cmd_api(args: argparse.Namespace) -> int:
+    _log_to_stderr("INFO")
     return _run_api(args.host, args.port)
 
 
+def _log_to_stderr(level: str) -> None:
+    import logging
+
+    logging.basicConfig(level=level.upper(), format="[%(asctime)s: %(levelname)s/%(name)s] %(message)s")
+
+
 def cmd_worker(args: argparse.Namespace) -> int:
+    _log_to_stderr(args.loglevel)
     settings = _settings()
     settings.ensure_dirs()
     if not _check_migrated(settings):
