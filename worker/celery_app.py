@@ -36,6 +36,7 @@ def make_celery(settings: Settings) -> Celery:
         conf["broker_transport_options"] = {
             "data_folder_in": folder, "data_folder_out": folder,
             "processed_folder": str((settings.data_dir / "broker" / "processed").resolve()),
+            "control_folder": str((settings.data_dir / "broker" / "control").resolve()),
             "store_processed": False,
         }
     app.conf.update(conf)
