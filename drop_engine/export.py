@@ -54,3 +54,16 @@ def load_policy(path: str | Path):
             return module(torch.as_tensor(obs, dtype=torch.float32)).numpy()
 
     return act
+
+
+def export_onnx(torchscript_path: str | Path, obs_dim: int, out_path: str | Path) -> Path:
+    """An ONNX copy of an exported policy (input "obs", output "action", dynamic batch) for runtimes without torch."""
+    module = torch.jit.load(str(torchscript_path), map_location="cpu").eval()
+    out_path = Path(out_path)
+    tmp = out_path.with_suffix(".onnx.tmp")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript-based exporter is the one that takes a ScriptModule
+        torch.onnx.export(module, (torch.zeros(1, obs_dim),), str(tmp), input_names=["obs"], output_names=["action"],
+                          dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}}, dynamo=False)
+    tmp.replace(out_path)
+    return out_path

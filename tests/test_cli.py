@@ -29,3 +29,21 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     assert "actions: has 2 rows but observations has 3" in capsys.readouterr().err
     assert main(["train", "--dataset", str(bad), "--set", "dice.rate=1", "--out", str(tmp_path / "r")]) == 2
     assert "dice.rate" in capsys.readouterr().err
+
+
+def test_onnx_copy_matches_torchscript(tmp_path, hopper_dataset):
+    import numpy as np
+    import onnxruntime
+    import torch
+
+    from drop_engine.config import build_config
+    from drop_engine.export import export_onnx, load_policy
+    from drop_engine.trainer import train
+
+    result = train(hopper_dataset, build_config("mbpo", "hopper", "smoke", overrides={"epochs": 1}), tmp_path)
+    onnx_path = export_onnx(result.policy["torchscript"], 11, tmp_path / "policy.onnx")
+    obs = hopper_dataset.observations[:7]
+    session = onnxruntime.InferenceSession(str(onnx_path))
+    (onnx_act,) = session.run(None, {"obs": obs})
+    np.testing.assert_allclose(onnx_act, load_policy(result.policy["torchscript"])(obs), atol=1e-5)
+    assert not torch.equal(torch.as_tensor(onnx_act[0]), torch.as_tensor(onnx_act[1]))

@@ -102,7 +102,7 @@ def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message:
 
 def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int) -> None:
     """Best effort: a policy that cannot be expressed in ONNX still leaves TorchScript and state_dict."""
-    from .onnx_export import export_onnx
+    from drop_engine.export import export_onnx
 
     try:
         torchscript = Path(result.policy["torchscript"])
