@@ -287,7 +287,7 @@ class Trainer:
             if self.cb.should_stop():
                 self.checkpoint()
                 return self._result("stopped")
-            epoch_start = time.perf_counter()
+            epoch_start, before = time.perf_counter(), dict(self.timings)
             if not self.epoch_started:
                 self._start_epoch()
                 self.epoch_started = True
@@ -301,6 +301,8 @@ class Trainer:
             if self.epoch % cfg.eval_every == 0 or self.epoch == cfg.epochs:
                 self.evaluate_now()
             self.timings["epochs"] += time.perf_counter() - epoch_start
+            self.cb.on_metrics({f"time/{k}": v - before.get(k, 0.0) for k, v in self.timings.items() if k != "dynamics"},
+                               self.global_step)
             if self.epoch % cfg.checkpoint_every == 0 or self.epoch == cfg.epochs:
                 self.checkpoint()
         self.cb.on_progress("export", self.epoch, 0, 1)
