@@ -55,6 +55,12 @@ def checkpoint(row: JobCheckpoint) -> dict:
             "step": row.step, "size_bytes": row.size_bytes}
 
 
+def fetch_page(s, query, to_dict, limit: int) -> dict:
+    """Run an ordered query for one row past the page, which tells whether there is more."""
+    rows = list(s.scalars(query.limit(limit + 1)))
+    return page([to_dict(r) for r in rows[:limit]], len(rows) > limit)
+
+
 def page(items: list[dict], has_more: bool) -> dict:
     return {"object": "list", "data": items, "has_more": has_more,
             "next_after": items[-1]["id"] if items and has_more else None}

@@ -57,8 +57,7 @@ def list_datasets(after: str | None = None, limit: int = Query(20, ge=1, le=100)
     q = select(Dataset).where(Dataset.owner_id == owner)
     if after:
         q = q.where(Dataset.id < after)
-    rows = list(s.scalars(q.order_by(Dataset.id.desc()).limit(limit + 1)))
-    return serialize.page([serialize.dataset(r) for r in rows[:limit]], len(rows) > limit)
+    return serialize.fetch_page(s, q.order_by(Dataset.id.desc()), serialize.dataset, limit)
 
 
 @router.get("/{dataset_id}")

@@ -82,8 +82,7 @@ def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUS
         q = q.where(Job.status == status)
     if after:
         q = q.where(Job.id < after)
-    rows = list(s.scalars(q.order_by(Job.id.desc()).limit(limit + 1)))
-    return serialize.page([serialize.job(r) for r in rows[:limit]], len(rows) > limit)
+    return serialize.fetch_page(s, q.order_by(Job.id.desc()), serialize.job, limit)
 
 
 @router.get("/{job_id}")

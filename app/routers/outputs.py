@@ -69,9 +69,8 @@ def job_events(job_id: str, request: Request, after: int = Query(0, ge=0), limit
         start = int(last) if last.isdigit() else after
         return StreamingResponse(_stream(request, job_id, start), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
-    rows = list(s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
-                          .order_by(JobEvent.id).limit(limit + 1)))
-    return serialize.page([serialize.event(r) for r in rows[:limit]], len(rows) > limit)
+    q = select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after).order_by(JobEvent.id)
+    return serialize.fetch_page(s, q, serialize.event, limit)
 
 
 @router.get("/metrics", summary="Scalar training metrics, oldest first; filter by name")
@@ -81,8 +80,7 @@ def job_metrics(job_id: str, name: str | None = None, after: int = Query(0, ge=0
     q = select(JobMetric).where(JobMetric.job_id == job_id, JobMetric.id > after)
     if name:
         q = q.where(JobMetric.name == name)
-    rows = list(s.scalars(q.order_by(JobMetric.id).limit(limit + 1)))
-    return serialize.page([serialize.metric(r) for r in rows[:limit]], len(rows) > limit)
+    return serialize.fetch_page(s, q.order_by(JobMetric.id), serialize.metric, limit)
 
 
 @router.get("/evaluations", summary="Evaluations in the real env (return and D4RL normalised score)")
