@@ -48,7 +48,9 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
     elite_mean = mean[model.elites].mean(0).numpy()
     true_r, true_next = true_step(cfg.env, obs, act, qpos, qvel, cfg.env_version)
     truth = np.concatenate([true_r[:, None], true_next - obs], 1)
-    drop = (cfg.penalty.eta * ratio_penalty(trainer.dice.tau(o, a), cfg.penalty)).mean(0).numpy()
+    # The unclamped g(tau): the figure compares how each penalty ranks (s, a), whatever the run's bonus setting.
+    unclamped = cfg.penalty.model_copy(update={"bonus": True})
+    drop = (cfg.penalty.eta * ratio_penalty(trainer.dice.tau(o, a), unclamped)).mean(0).numpy()
     mopo = (cfg.penalty.mopo_lambda * uncertainty_penalty(logvar)).numpy()
     return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo}
 
