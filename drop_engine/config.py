@@ -151,10 +151,10 @@ def preset_settings(preset: str, env: str) -> dict[str, Any]:
     if preset == "paper":
         return {"epochs": PAPER_EPOCHS.get(env, 1000), "sac": {"target_entropy": -3.0}}
     if preset == "cpu":
-        # About 30 min for hopper on 2 cores: at most 5 min of dynamics, then 60 epochs of ~23 s each
-        # (1000 SAC updates, the DICE steps, 10,000 x h rollouts).
+        # About 30 min for hopper DROP on 2 idle cores: at most 5 min of dynamics, then 90 epochs of ~16 s each
+        # (1000 SAC updates, the DICE steps, 10,000 x h rollouts; bench/results/engine_speed.md).
         return {
-            "epochs": 60, "eval_every": 10, "eval_episodes": 5, "checkpoint_every": 10,
+            "epochs": 90, "eval_every": 10, "eval_episodes": 5, "checkpoint_every": 10,
             "dynamics": {"max_epochs": 200, "max_seconds": 300.0},
             "rollout": {"batch_size": 10_000},
         }
