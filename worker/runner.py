@@ -9,6 +9,7 @@ import logging
 import os
 import socket
 import threading
+import time
 import traceback
 from pathlib import Path
 from typing import Callable
@@ -158,18 +159,21 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     from drop_engine.trainer import train
 
     job_id = job.id
+    started = time.monotonic()
     try:
         if dataset is None or not Path(dataset.path).is_file():
             raise DatasetError("file: the job's dataset was deleted")
         result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback)
-    except SoftTimeLimitExceeded:
-        _fail(sessions, job_id, attempt, "timeout", f"the attempt ran past max_runtime_s={job.max_runtime_s}",
-              traceback.format_exc())
-        return "failed"
     except DatasetError as exc:
         _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
         return "failed"
     except Exception as exc:
+        # The soft limit is raised from a signal handler wherever the job happens to be, and a library may wrap
+        # it in its own error type: past the deadline, any failure is the timeout.
+        if isinstance(exc, SoftTimeLimitExceeded) or time.monotonic() - started >= job.max_runtime_s:
+            _fail(sessions, job_id, attempt, "timeout", f"the attempt ran past max_runtime_s={job.max_runtime_s}",
+                  traceback.format_exc())
+            return "failed"
         log.exception("job %s failed", job_id)
         _fail(sessions, job_id, attempt, "training_error", f"{type(exc).__name__}: {exc}", traceback.format_exc())
         return "failed"
