@@ -1,11 +1,12 @@
 """Checkpoint files: atomic writes, newest-first lookup, pruning. Names sort by position in the run."""
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import torch
+
+from .atomic import save_durably
 
 _NAME = re.compile(r"^ckpt-e(\d{6})-s(\d{6})\.pt$")
 
@@ -23,16 +24,12 @@ def list_checkpoints(directory: str | Path) -> list[Path]:
 
 
 def save_checkpoint(state: dict, directory: str | Path, epoch: int, step: int, keep: int) -> Path:
-    """Write to a temporary name, fsync, rename: a crash never leaves a half-written checkpoint under a real name."""
+    """Write to a temporary name, fsync, rename: a crash never leaves a half-written checkpoint under a real name, and
+    a failed write (a full disk) leaves no file at all."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / checkpoint_name(epoch, step)
-    tmp = directory / f".{path.name}.tmp"
-    with open(tmp, "wb") as handle:
-        torch.save(state, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    tmp.replace(path)
+    save_durably(state, path)
     for old in list_checkpoints(directory)[:-keep]:
         old.unlink(missing_ok=True)
     return path

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .envs import envs_matching, get_env
 
 REQUIRED = ("observations", "actions", "rewards", "terminals")
@@ -76,25 +77,18 @@ class DatasetReport:
         return asdict(self)
 
 
-def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+def _read_hdf5(path: Path, max_bytes: int | None) -> tuple[dict[str, np.ndarray], dict]:
     import h5py
+
+    from .safe_hdf5 import SafeHDF5
 
     try:
         handle = h5py.File(path, "r")
     except OSError as exc:
         raise DatasetError(f"file: not a readable HDF5 file ({exc})") from None
     with handle:
-        arrays: dict[str, np.ndarray] = {}
-        for key in REQUIRED + OPTIONAL + INFO_KEYS:
-            if key not in handle:
-                continue
-            node = handle[key]
-            if not isinstance(node, h5py.Dataset):
-                raise DatasetError(f"{key}: expected an array, found a group")
-            try:
-                arrays[key] = node[()]
-            except (OSError, ValueError, TypeError) as exc:
-                raise DatasetError(f"{key}: cannot be read ({exc})") from None
+        reader = SafeHDF5(handle, max_bytes)
+        arrays = {key: reader.read(key) for key in REQUIRED + OPTIONAL + INFO_KEYS if key in handle}
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in handle.attrs.items()}
     return arrays, attrs
 
@@ -183,15 +177,15 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict | None = None, env: s
     return Dataset(obs, act, rewards, next_obs, terminals, timeouts, dict(attrs or {}), notes)
 
 
-def load_dataset(path: str | Path, env: str | None = None) -> Dataset:
-    """Load and validate an HDF5 (.hdf5/.h5) or .npz dataset."""
+def load_dataset(path: str | Path, env: str | None = None, max_bytes: int | None = None) -> Dataset:
+    """Load and validate an HDF5 (.hdf5/.h5) or .npz dataset; `max_bytes` caps what an HDF5 file may declare."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"file: {path} does not exist")
     if path.suffix == ".npz":
         arrays, attrs = _read_npz(path)
     else:
-        arrays, attrs = _read_hdf5(path)
+        arrays, attrs = _read_hdf5(path, max_bytes)
     return from_arrays(arrays, attrs, env)
 
 
@@ -227,14 +221,11 @@ def save_hdf5(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict | Non
     """Write D4RL layout (nested keys such as 'infos/qpos' become groups)."""
     import h5py
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with h5py.File(tmp, "w") as handle:
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as handle:
         for key, value in arrays.items():
             handle.create_dataset(key, data=value, compression="gzip" if compress else None)
         for key, value in (attrs or {}).items():
             handle.attrs[key] = value
-    tmp.replace(path)
 
 
 @dataclass

@@ -39,9 +39,10 @@ class GradientDice(nn.Module):
         """J_k per member, (members,). next_obs/next_act are per member: (members, N, d)."""
         x, x_next, x0 = self._input(obs, act), self._input(next_obs, next_act), self._input(obs0, act0)
         tau = self.tau_net(x).squeeze(-1)
-        f = self.f_net(x).squeeze(-1)
-        f_next = self.f_net(x_next).squeeze(-1)
-        f0 = self.f_net(x0).squeeze(-1)
+        # f at all three inputs in one pass: three small batched matmuls per layer become one larger one.
+        shared = (self.members, -1, -1)
+        f_all = self.f_net(torch.cat([x.expand(shared), x_next, x0.expand(shared)], 1)).squeeze(-1)
+        f, f_next, f0 = f_all.split([x.shape[-2], x_next.shape[-2], x0.shape[-2]], 1)
         nu = self.nu
         j = (
             (1 - self.gamma) * f0.mean(1)

@@ -1,39 +1,15 @@
-"""Environments drop-rl knows: gymnasium ids, dims, D4RL reference scores and termination functions.
+"""Environments drop-rl knows: gymnasium ids, dims, D4RL reference scores, and which termination function each uses.
 
-Termination functions work on torch tensors of any leading shape so model rollouts never leave the device.
+No torch here: the API imports this to check job specs, and importing torch would cost it ~300 MB and seconds.
 """
 from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING
 
-import torch
-
-TerminationFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-def _hopper_done(obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    # gymnasium's healthy check; the official MOPO code misplaces a parenthesis here.
-    height, angle = next_obs[..., 0], next_obs[..., 1]
-    healthy = (
-        torch.isfinite(next_obs).all(-1)
-        & (next_obs[..., 1:].abs() < 100).all(-1)
-        & (height > 0.7)
-        & (angle.abs() < 0.2)
-    )
-    return ~healthy
-
-
-def _walker2d_done(obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    height, angle = next_obs[..., 0], next_obs[..., 1]
-    healthy = (height > 0.8) & (height < 2.0) & (angle > -1.0) & (angle < 1.0)
-    return ~healthy
-
-
-def _never_done(obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-    return torch.zeros(next_obs.shape[:-1], dtype=torch.bool, device=next_obs.device)
-
+if TYPE_CHECKING:
+    from .termination import TerminationFn
 
 @dataclass(frozen=True)
 class EnvSpec:
@@ -43,7 +19,12 @@ class EnvSpec:
     act_dim: int
     random_score: float
     expert_score: float
-    termination: TerminationFn
+
+    @property
+    def termination(self) -> TerminationFn:
+        from .termination import BY_ENV
+
+        return BY_ENV[self.name]
 
     def gym_id(self, version: str = "v4") -> str:
         if version not in ("v4", "v5"):
@@ -56,9 +37,9 @@ class EnvSpec:
 
 
 ENVS: dict[str, EnvSpec] = {
-    "hopper": EnvSpec("hopper", "Hopper", 11, 3, -20.272305, 3234.3, _hopper_done),
-    "walker2d": EnvSpec("walker2d", "Walker2d", 17, 6, 1.629008, 4592.3, _walker2d_done),
-    "halfcheetah": EnvSpec("halfcheetah", "HalfCheetah", 17, 6, -280.178953, 12135.0, _never_done),
+    "hopper": EnvSpec("hopper", "Hopper", 11, 3, -20.272305, 3234.3),
+    "walker2d": EnvSpec("walker2d", "Walker2d", 17, 6, 1.629008, 4592.3),
+    "halfcheetah": EnvSpec("halfcheetah", "HalfCheetah", 17, 6, -280.178953, 12135.0),
 }
 
 
@@ -76,7 +57,9 @@ def termination_fn(name: str) -> TerminationFn:
         return get_env(name).termination
     except KeyError:
         warnings.warn(f"no termination function for {name!r}: model rollouts never terminate", stacklevel=2)
-        return _never_done
+        from .termination import never_done
+
+        return never_done
 
 
 def envs_matching(obs_dim: int, act_dim: int) -> list[str]:

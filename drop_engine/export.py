@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from .atomic import atomic_path
 from .sac import Actor
 
 
@@ -35,11 +36,12 @@ def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str
     with warnings.catch_warnings():  # TorchScript is deprecated upstream but is still the one torch-only format
         warnings.simplefilter("ignore", DeprecationWarning)
         scripted = torch.jit.script(policy)
-    tmp = paths["torchscript"].with_suffix(".tmp")
-    scripted.save(str(tmp))
-    tmp.replace(paths["torchscript"])
-    torch.save(policy.state_dict(), paths["state_dict"])
-    paths["metadata"].write_text(json.dumps(metadata, indent=2, default=str))
+    with atomic_path(paths["torchscript"]) as tmp:
+        scripted.save(str(tmp))
+    with atomic_path(paths["state_dict"]) as tmp:
+        torch.save(policy.state_dict(), tmp)
+    with atomic_path(paths["metadata"]) as tmp:
+        tmp.write_text(json.dumps(metadata, indent=2, default=str))
     return paths
 
 
@@ -60,10 +62,8 @@ def export_onnx(torchscript_path: str | Path, obs_dim: int, out_path: str | Path
     """An ONNX copy of an exported policy (input "obs", output "action", dynamic batch) for runtimes without torch."""
     module = torch.jit.load(str(torchscript_path), map_location="cpu").eval()
     out_path = Path(out_path)
-    tmp = out_path.with_suffix(".onnx.tmp")
-    with warnings.catch_warnings():
+    with atomic_path(out_path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript-based exporter is the one that takes a ScriptModule
         torch.onnx.export(module, (torch.zeros(1, obs_dim),), str(tmp), input_names=["obs"], output_names=["action"],
                           dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}}, dynamo=False)
-    tmp.replace(out_path)
     return out_path

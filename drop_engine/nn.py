@@ -85,3 +85,45 @@ class Standardize(nn.Module):
 def adam(params, lr: float) -> torch.optim.Adam:
     """Adam with the fused kernel (one pass over all parameters instead of several per tensor)."""
     return torch.optim.Adam(params, lr=lr, fused=True)
+
+
+CACHE_ROWS = 512
+
+
+def in_row_chunks(fn, *inputs: torch.Tensor, in_dim: int = 0, out_dim: int = 0, rows: int = CACHE_ROWS):
+    """`fn` over slices of `rows` rows, outputs joined: a 50,000-row batch spills every layer's activations out of a
+    CPU's cache, while 512 rows (x 5 members x 200 units) fit in L2; measured 3x faster for the dynamics ensemble.
+    On a GPU the whole batch goes at once."""
+    n = inputs[0].shape[in_dim]
+    if inputs[0].device.type != "cpu" or n <= rows:
+        return fn(*inputs)
+    parts = [fn(*(x.narrow(in_dim, lo, min(rows, n - lo)) for x in inputs)) for lo in range(0, n, rows)]
+    if isinstance(parts[0], tuple):
+        return tuple(torch.cat(p, out_dim) for p in zip(*parts))
+    return torch.cat(parts, out_dim)
+
+
+class RowsByMember:
+    """Rows assigned to ensemble members, laid out as a padded (members, width) index, so one batched matmul runs
+    each row through its own member only instead of through every member (5x less work with 5 elites)."""
+
+    def __init__(self, member: torch.Tensor, members: int):
+        n = member.shape[0]
+        order = torch.argsort(member, stable=True)
+        counts = torch.bincount(member, minlength=members)
+        starts = torch.cumsum(counts, 0) - counts
+        self.member = member
+        self.slot = torch.empty_like(member)
+        self.slot[order] = torch.arange(n, device=member.device) - starts[member[order]]
+        width = int(counts.max()) if n else 0
+        # Padding slots point at row 0; their outputs are computed and never read.
+        self.index = torch.zeros(members, width, dtype=torch.long, device=member.device)
+        self.index[member, self.slot] = torch.arange(n, device=member.device)
+
+    def gather(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, ...) -> (members, width, ...)."""
+        return x[self.index]
+
+    def scatter(self, y: torch.Tensor) -> torch.Tensor:
+        """(members, width, ...) -> (N, ...), each row's output from its own member."""
+        return y[self.member, self.slot]

@@ -10,7 +10,6 @@ atomically, so a stopped run resumes the same number stream it would have produc
 """
 from __future__ import annotations
 
-import os
 import random
 import time
 import warnings
@@ -21,6 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from .atomic import save_durably
 from .config import SACConfig
 from .envs import get_env, make_env
 from .evaluate import evaluate
@@ -160,14 +160,8 @@ class History:
 
 
 def atomic_save(state: dict, path: Path) -> None:
-    """Temporary name, fsync, rename: a crash leaves the previous checkpoint, never a half-written one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as handle:
-        torch.save(state, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    tmp.replace(path)
+    save_durably(state, path)
 
 
 def actor_fn(actor: Actor, deterministic: bool) -> Callable[[np.ndarray], np.ndarray]:

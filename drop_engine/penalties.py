@@ -26,7 +26,7 @@ def uncertainty_penalty(logvar: torch.Tensor) -> torch.Tensor:
 
 
 def penalized_reward(
-    algorithm: str, reward: torch.Tensor, cfg: PenaltyConfig, tau: torch.Tensor | None, logvar: torch.Tensor
+    algorithm: str, reward: torch.Tensor, cfg: PenaltyConfig, tau: torch.Tensor | None, logvar: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(penalised reward, penalty) for one rollout step."""
     if algorithm == "drop":

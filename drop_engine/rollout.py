@@ -6,7 +6,8 @@ import torch
 from .config import PenaltyConfig
 from .dice import GradientDice
 from .dynamics import GaussianEnsemble
-from .envs import TerminationFn
+from .termination import TerminationFn
+from .nn import RowsByMember, in_row_chunks
 from .penalties import penalized_reward
 from .sac import Actor
 
@@ -63,18 +64,26 @@ class ReplayBuffer:
 
 def sample_members(
     model: GaussianEnsemble, obs: torch.Tensor, act: torch.Tensor, all_members: bool
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One model step per sample from a uniformly drawn elite: (reward, next_obs, elite position, logvar).
+) -> tuple[torch.Tensor, torch.Tensor, RowsByMember | None, torch.Tensor | None]:
+    """One model step per sample from a uniformly drawn elite: (reward, next_obs, rows by elite, logvar).
 
-    logvar covers all members when `all_members` (MOPO's penalty needs them), else only the elites."""
-    mean, logvar = model(obs, act, None if all_members else model.elites)
+    With `all_members` (MOPO, whose penalty needs every member's logvar) all members run on every row and logvar is
+    (members, N, D); otherwise each row runs through its own elite only, and the grouping is returned so DICE's
+    estimators can follow the same assignment."""
     n = obs.shape[0]
     pos = torch.randint(0, model.num_elites, (n,), device=obs.device)
-    rows = torch.arange(n, device=obs.device)
-    member = model.elites[pos] if all_members else pos
-    mu, lv = mean[member, rows], logvar[member, rows]
+    if all_members:
+        mean, logvar = in_row_chunks(model, obs, act, out_dim=1)
+        rows = torch.arange(n, device=obs.device)
+        member = model.elites[pos]
+        mu, lv, groups = mean[member, rows], logvar[member, rows], None
+    else:
+        groups = RowsByMember(pos, model.num_elites)
+        mean, lv = in_row_chunks(lambda o, a: model(o, a, model.elites), groups.gather(obs), groups.gather(act),
+                                 in_dim=1, out_dim=1)
+        mu, lv, logvar = groups.scatter(mean), groups.scatter(lv), None
     sample = mu + torch.exp(0.5 * lv) * torch.randn_like(mu)
-    return sample[:, 0], obs + sample[:, 1:], pos, logvar
+    return sample[:, 0], obs + sample[:, 1:], groups, logvar
 
 
 @torch.no_grad()
@@ -93,11 +102,11 @@ def model_rollout(
     obs = starts
     pens, taus, rews, added = [], [], [], 0
     for _ in range(horizon):
-        act = actor.act(obs)
-        rew, next_obs, pos, logvar = sample_members(model, obs, act, all_members=algorithm == "mopo")
+        act = in_row_chunks(actor.act, obs)
+        rew, next_obs, groups, logvar = sample_members(model, obs, act, all_members=algorithm == "mopo")
         tau = None
         if dice is not None:
-            tau = dice.tau(obs, act).gather(0, pos.unsqueeze(0)).squeeze(0)
+            tau = groups.scatter(in_row_chunks(dice.tau, groups.gather(obs), groups.gather(act), in_dim=1, out_dim=1))
             taus.append(tau)
         rew_pen, pen = penalized_reward(algorithm, rew, penalty, tau, logvar)
         done = termination(obs, act, next_obs)

@@ -25,6 +25,7 @@ from .dynamics import DynamicsReport, GaussianEnsemble, train_dynamics
 from .envs import get_env
 from .evaluate import evaluate
 from .export import export_policy
+from .nn import in_row_chunks
 from .rollout import ReplayBuffer, model_rollout
 from .sac import SAC
 
@@ -165,19 +166,14 @@ class Trainer:
         return True
 
     @torch.no_grad()
-    def _cache_model_successors(self, chunk: int = 8192) -> None:
+    def _cache_model_successors(self) -> None:
         """Each elite's mean next state and non-terminal mask for every offline (s, a).
 
         The ensemble is frozen after its training, so these are computed once instead of once per DICE step."""
         elites, obs, act = self.model.elites, self.real.data["obs"], self.real.data["act"]
-        nxt, alive = [], []
-        for lo in range(0, len(self.real), chunk):
-            o, a = obs[lo : lo + chunk], act[lo : lo + chunk]
-            mean, _ = self.model(o, a, elites)
-            n = o + mean[..., 1:]
-            nxt.append(n)
-            alive.append((~self.termination(o, a, n)).float())
-        self.successors, self.successor_alive = torch.cat(nxt, 1), torch.cat(alive, 1)
+        mean, _ = in_row_chunks(lambda o, a: self.model(o, a, elites), obs, act, out_dim=1)
+        self.successors = obs + mean[..., 1:]
+        self.successor_alive = (~self.termination(obs, act, self.successors)).float()
 
     def train_dice(self, steps: int) -> dict[str, torch.Tensor]:
         cfg, actor, dice = self.cfg.dice, self.sac.actor, self.dice
