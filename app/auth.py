@@ -9,7 +9,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from .ids import new_id
-from .models import Owner, Token
+from .models import Owner, Token, utcnow
 from .problems import Problem
 
 LOCAL_OWNER = "local"
@@ -38,8 +38,43 @@ def create_token(factory: sessionmaker[Session], name: str) -> str:
     return token
 
 
+class TokenNotFound(LookupError):
+    pass
+
+
+def list_tokens(factory: sessionmaker[Session], owner: str | None = None) -> list[tuple[Token, str]]:
+    """(token, owner name) rows, oldest first; never the secrets, which are not stored."""
+    q = select(Token, Owner.name).join(Owner, Owner.id == Token.owner_id).order_by(Token.id)
+    if owner is not None:
+        q = q.where(Owner.name == owner)
+    with factory() as session:
+        return [(row.Token, row.name) for row in session.execute(q)]
+
+
+def revoke_token(factory: sessionmaker[Session], ref: str) -> Token:
+    """Revoke the token with id `ref`, the one token whose id starts with `ref`, or the token `ref` itself.
+
+    The API looks tokens up on every request, so a revoked token is refused from the next request on.
+    """
+    if not ref:
+        raise TokenNotFound("give a token id, the start of one, or the token itself")
+    with factory() as session, session.begin():
+        if ref.startswith("drop_"):
+            rows = list(session.scalars(select(Token).where(Token.token_hash == hash_token(ref))))
+        else:
+            rows = list(session.scalars(select(Token).where(Token.id.startswith(ref, autoescape=True)).limit(2)))
+        if not rows:
+            raise TokenNotFound(f"no token matches {ref!r}; `drop token list` shows them")
+        if len(rows) > 1:
+            raise TokenNotFound(f"{ref!r} matches more than one token; give more of the id")
+        row = rows[0]
+        if row.revoked_at is None:
+            row.revoked_at = utcnow()
+    return row
+
+
 def _unauthorized(detail: str) -> Problem:
-    return Problem(401, "unauthorized", detail)
+    return Problem(401, "unauthorized", detail, headers={"WWW-Authenticate": "Bearer"})
 
 
 def current_owner(request: Request) -> str:

@@ -1,4 +1,4 @@
-"""`drop`: the engine's commands (train, evaluate) plus the service's: serve, api, worker, token create, db upgrade."""
+"""`drop`: the engine's commands (train, evaluate) plus the service's: serve, api, worker, token, db upgrade."""
 from __future__ import annotations
 
 import argparse
@@ -41,17 +41,58 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_token_create(args: argparse.Namespace) -> int:
-    from .auth import create_token
+def _with_sessions(run) -> int:
+    """Run `run(sessionmaker)` against the configured database, once it is at the newest migration."""
     from .db import make_engine, make_sessionmaker
 
     settings = _settings()
     if not _check_migrated(settings):
         return 2
     engine = make_engine(settings.sqlalchemy_url)
-    print(create_token(make_sessionmaker(engine), args.name))
-    engine.dispose()
-    return 0
+    try:
+        return run(make_sessionmaker(engine))
+    finally:
+        engine.dispose()
+
+
+def cmd_token_create(args: argparse.Namespace) -> int:
+    from .auth import create_token
+
+    def run(sessions) -> int:
+        print(create_token(sessions, args.name))
+        return 0
+
+    return _with_sessions(run)
+
+
+def cmd_token_list(args: argparse.Namespace) -> int:
+    from .auth import list_tokens
+    from .serialize import iso
+
+    def run(sessions) -> int:
+        rows = list_tokens(sessions, args.owner)
+        print(f"{'id':<30} {'owner':<20} {'created':<28} revoked")
+        for token, owner in rows:
+            print(f"{token.id:<30} {owner:<20} {iso(token.created_at):<28} {iso(token.revoked_at) or '-'}")
+        return 0
+
+    return _with_sessions(run)
+
+
+def cmd_token_revoke(args: argparse.Namespace) -> int:
+    from .auth import TokenNotFound, revoke_token
+    from .serialize import iso
+
+    def run(sessions) -> int:
+        try:
+            token = revoke_token(sessions, args.token)
+        except TokenNotFound as exc:
+            print(f"drop: {exc}", file=sys.stderr)
+            return 2
+        print(f"token {token.id} revoked at {iso(token.revoked_at)}; it is refused from now on")
+        return 0
+
+    return _with_sessions(run)
 
 
 def _run_api(host: str, port: int) -> int:
@@ -140,6 +181,12 @@ def build_parser() -> argparse.ArgumentParser:
     t = tsub.add_parser("create", help="create a token for an owner (created if new) and print it once")
     t.add_argument("--name", required=True)
     t.set_defaults(func=cmd_token_create)
+    t = tsub.add_parser("list", help="list tokens (ids, owners, when created and revoked; never the secrets)")
+    t.add_argument("--owner", help="only this owner's tokens")
+    t.set_defaults(func=cmd_token_list)
+    t = tsub.add_parser("revoke", help="revoke a token at once, by id, the start of an id, or the token itself")
+    t.add_argument("token", metavar="ID_OR_TOKEN")
+    t.set_defaults(func=cmd_token_revoke)
 
     p = sub.add_parser("db", help="database")
     dsub = p.add_subparsers(dest="db_command", required=True)

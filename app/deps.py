@@ -1,13 +1,14 @@
 """Request-scoped dependencies: settings, a database session, the owner, and owner-scoped lookups (404 otherwise)."""
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Annotated, Iterator
 
-from fastapi import Depends, Request
+from fastapi import Depends, Query, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from .auth import current_owner
+from .ids import id_pattern, is_id
 from .models import Dataset, Job
 from .problems import Problem
 from .settings import Settings
@@ -25,19 +26,26 @@ def session(request: Request) -> Iterator[Session]:
 def owned_dataset(s: Session, owner_id: str, dataset_id: str, lock: bool = False) -> Dataset:
     """The owner's dataset or 404; `lock` takes a row lock (PostgreSQL) so a delete and a new job cannot interleave."""
     q = select(Dataset).where(Dataset.id == dataset_id, Dataset.owner_id == owner_id)
-    row = s.scalar(q.with_for_update() if lock else q)
+    row = s.scalar(q.with_for_update() if lock else q) if is_id(dataset_id, "ds") else None
     if row is None:
         raise Problem(404, "not_found", f"dataset {dataset_id} not found")
     return row
 
 
 def owned_job(s: Session, owner_id: str, job_id: str) -> Job:
-    row = s.scalar(select(Job).where(Job.id == job_id, Job.owner_id == owner_id))
+    row = s.scalar(select(Job).where(Job.id == job_id, Job.owner_id == owner_id)) if is_id(job_id, "job") else None
     if row is None:
         raise Problem(404, "not_found", f"job {job_id} not found")
     return row
 
 
+def _cursor(prefix: str):
+    """The type of a list's `?after=`: an id, as the previous page's `next_after` gave it; anything else is a 422."""
+    return Annotated[str | None, Query(pattern=id_pattern(prefix), description="`next_after` of the previous page")]
+
+
+DatasetCursor = _cursor("ds")
+JobCursor = _cursor("job")
 Owner = Depends(current_owner)
 DB = Depends(session)
 Config = Depends(settings)

@@ -20,7 +20,8 @@ class JobRequest(BaseModel):
     algorithm: str = Field("drop", description="drop | mopo | mbpo")
     env: str | None = Field(None, description="hopper | walker2d | halfcheetah; default: the env the dataset matches")
     preset: str = Field("cpu", description="paper | cpu | smoke")
-    task: str | None = Field(None, description="dataset kind (random, medium, ...) selecting the paper's settings")
+    task: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$",
+                             description="dataset kind (random, medium, ...) selecting the paper's settings")
     overrides: dict[str, Any] = Field(default_factory=dict, description='dotted keys, e.g. {"epochs": 50}')
     seed: int = Field(0, ge=0, le=2**31 - 1)
     max_runtime_s: int | None = Field(None, ge=5, le=30 * 24 * 3600, description="time limit of one attempt")

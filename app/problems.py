@@ -7,7 +7,10 @@ from http import HTTPStatus
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict
 from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from .storage_errors import storage_failure
 
 log = logging.getLogger("drop.api")
 MEDIA_TYPE = "application/problem+json"
@@ -16,9 +19,9 @@ MEDIA_TYPE = "application/problem+json"
 class Problem(Exception):
     """Raise anywhere in a request to answer with problem+json."""
 
-    def __init__(self, status: int, code: str, detail: str, **extra):
+    def __init__(self, status: int, code: str, detail: str, headers: dict[str, str] | None = None, **extra):
         super().__init__(detail)
-        self.status, self.code, self.detail, self.extra = status, code, detail, extra
+        self.status, self.code, self.detail, self.headers, self.extra = status, code, detail, headers, extra
 
 
 def problem_response(status: int, code: str, detail: str, headers: dict | None = None, **extra) -> JSONResponse:
@@ -31,6 +34,39 @@ def problem_response(status: int, code: str, detail: str, headers: dict | None =
         **extra,
     }
     return JSONResponse(body, status_code=status, media_type=MEDIA_TYPE, headers=headers)
+
+
+class FieldError(BaseModel):
+    field: str
+    message: str
+
+
+class ProblemBody(BaseModel):
+    """An error: RFC 9457 problem details plus a stable `code`; `errors` names the bad fields of a 422."""
+
+    model_config = ConfigDict(extra="allow", title="Problem")
+    type: str
+    title: str
+    status: int
+    detail: str
+    code: str
+    errors: list[FieldError] | None = None
+
+
+def _document_problems(spec: dict) -> None:
+    """Every 4xx and 5xx answer of every operation is problem+json, in place of FastAPI's own 422 shape."""
+    schemas = spec.setdefault("components", {}).setdefault("schemas", {})
+    problem = ProblemBody.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas.update(problem.pop("$defs", {}))
+    schemas["Problem"] = problem
+    for name in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(name, None)
+    answer = {"description": "Error (application/problem+json)",
+              "content": {MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+    for operations in spec.get("paths", {}).values():
+        for operation in operations.values():
+            operation["responses"].pop("422", None)
+            operation["responses"].update({"4XX": answer, "5XX": answer})
 
 
 _CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
@@ -47,9 +83,18 @@ def _field_errors(exc: RequestValidationError) -> list[dict]:
 
 
 def install(app: FastAPI) -> None:
+    generate = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            _document_problems(generate())  # FastAPI caches the schema it generates; amend it once
+        return app.openapi_schema
+
+    app.openapi = openapi
+
     @app.exception_handler(Problem)
     async def _problem(_: Request, exc: Problem):
-        return problem_response(exc.status, exc.code, exc.detail, **exc.extra)
+        return problem_response(exc.status, exc.code, exc.detail, headers=exc.headers, **exc.extra)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException):
@@ -69,3 +114,12 @@ def install(app: FastAPI) -> None:
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return problem_response(500, "internal_error", "the server failed to handle this request; it has been logged")
+
+    @app.exception_handler(OSError)
+    async def _storage(request: Request, exc: OSError):
+        """A full or read-only disk is the server's state, not a bug: 507 Insufficient Storage, without paths."""
+        failure = storage_failure(exc, "the request's data")
+        if failure is None:
+            return await _unexpected(request, exc)
+        log.error("storage failure on %s %s: %s", request.method, request.url.path, exc)
+        return problem_response(507, *failure)

@@ -16,6 +16,8 @@ class Settings(BaseSettings):
     broker_url: str | None = Field(None, description="default: Celery filesystem transport under data_dir")
     queue: str = "drop-jobs"
     max_upload_bytes: int = Field(2 * 1024**3, ge=1)
+    max_active_jobs_per_owner: int = Field(20, ge=1, description="queued + running + cancelling jobs; more get 429")
+    max_stored_bytes_per_owner: int = Field(20 * 1024**3, ge=1, description="sum of an owner's dataset uploads; 413")
     auth_disabled: bool = Field(False, description="single-user local mode: every request is the 'local' owner")
     worker_threads: int | None = Field(None, ge=1, description="torch threads per job")
     worker_concurrency: int = Field(1, ge=1, description="jobs at once per `drop worker`")
@@ -24,6 +26,8 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0)
     stale_after_s: float = Field(120.0, gt=0, description="a running job whose heartbeat is older is re-queued")
     reap_every_s: float = Field(30.0, gt=0)
+    redeliver_after_s: float = Field(60.0, gt=0, description="a worker idle this long sends again the queued jobs "
+                                     "enqueued before it went idle: their message was lost (e.g. Redis restarted)")
     validate_timeout_s: float = Field(300.0, gt=0)
     validate_memory_bytes: int = Field(8 * 1024**3, ge=256 * 1024**2, description="address-space cap of the validator")
     cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")

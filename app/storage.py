@@ -4,15 +4,23 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from .ids import is_id
 from .settings import Settings
 
 
+def _id(value: str, prefix: str) -> str:
+    """Paths are built from ids only; anything else here is a bug, never a client's string."""
+    if not is_id(value, prefix):
+        raise ValueError(f"{value!r} is not a {prefix} id")
+    return value
+
+
 def dataset_dir(settings: Settings, dataset_id: str) -> Path:
-    return settings.data_dir / "datasets" / dataset_id
+    return settings.data_dir / "datasets" / _id(dataset_id, "ds")
 
 
 def job_dir(settings: Settings, job_id: str) -> Path:
-    return settings.data_dir / "jobs" / job_id
+    return settings.data_dir / "jobs" / _id(job_id, "job")
 
 
 def upload_dir(settings: Settings) -> Path:

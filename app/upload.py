@@ -5,8 +5,10 @@ Nothing is held in memory beyond one chunk, and the file is removed if anything 
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from fastapi import Request
 from python_multipart.multipart import MultipartParser, parse_options_header
@@ -14,6 +16,7 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from .problems import Problem
 
 MULTIPART_SLACK = 64 * 1024  # headers and boundaries around the file part
+CONTROL_CHARS = re.compile(r"[\x00-\x1f\x7f]")
 
 
 @dataclass
@@ -25,16 +28,16 @@ class Upload:
 
 
 class _Sink:
-    def __init__(self, path: Path, limit: int):
+    def __init__(self, path: Path, limit: int, too_large: Callable[[], Problem]):
         self.handle = open(path, "wb")
         self.digest = hashlib.sha256()
         self.size = 0
-        self.limit = limit
+        self.limit, self.too_large = limit, too_large
 
     def write(self, data: bytes) -> None:
         self.size += len(data)
         if self.size > self.limit:
-            raise _too_large(self.limit)
+            raise self.too_large()
         self.digest.update(data)
         self.handle.write(data)
 
@@ -52,6 +55,15 @@ def _disposition(value: bytes) -> tuple[str | None, str | None]:
     filename = params.get(b"filename")
     return (name.decode("utf-8", "replace") if name is not None else None,
             filename.decode("utf-8", "replace") if filename is not None else None)
+
+
+def _label(text: str) -> str:
+    """A dataset's name is only a label (files are named by ids), but NUL and other control characters can be neither
+    stored nor shown safely."""
+    if CONTROL_CHARS.search(text):
+        raise Problem(422, "invalid_name", f"name: {text[:100]!r} contains control characters (such as NUL); "
+                      "use a plain name")
+    return text
 
 
 async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
@@ -72,7 +84,7 @@ async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
         state["in_file"] = name == "file" and not state["found"]
         if state["in_file"]:
             state["found"] = True
-            state["filename"] = filename or "upload"
+            state["filename"] = _label(filename) if filename else "upload"
 
     def on_part_data(data: bytes, start: int, end: int) -> None:
         if state["in_file"]:
@@ -89,7 +101,7 @@ async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
         async for chunk in request.stream():
             parser.write(chunk)
         parser.finalize()
-    except Problem:
+    except (Problem, OSError):  # ours, and the disk's (full, read-only): not the body's fault
         raise
     except Exception as exc:  # the multipart library's own parse errors
         raise Problem(400, "bad_multipart", f"the multipart body cannot be parsed: {exc}") from None
@@ -98,14 +110,22 @@ async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
     return state["filename"]
 
 
-async def receive(request: Request, dest: Path, limit: int, name: str | None) -> Upload:
-    """Write the request's file to `dest`; raises Problem (413, 400, 422) and leaves no file behind on failure."""
+async def receive(request: Request, dest: Path, limit: int, name: str | None,
+                  too_large: Callable[[], Problem] | None = None) -> Upload:
+    """Write the request's file to `dest`; raises Problem (413, 400, 422) and leaves no file behind on failure.
+
+    Past `limit` bytes it raises `too_large()` (default: the DROP_MAX_UPLOAD_BYTES problem), before reading the
+    body when Content-Length already says so, else while streaming.
+    """
+    too_large = too_large or (lambda: _too_large(limit))
+    if name is not None:
+        _label(name)
     length = request.headers.get("content-length")
     content_type = request.headers.get("content-type", "")
     is_multipart = content_type.lower().startswith("multipart/form-data")
     if length and length.isdigit() and int(length) > limit + (MULTIPART_SLACK if is_multipart else 0):
-        raise _too_large(limit)
-    sink = _Sink(dest, limit)
+        raise too_large()
+    sink = _Sink(dest, limit, too_large)
     try:
         if is_multipart:
             _, params = parse_options_header(content_type)

@@ -9,9 +9,14 @@ import asyncio
 import json
 import multiprocessing
 import os
+import re
 import resource
+import shutil
+import stat
 import zipfile
 from pathlib import Path
+
+from .storage_errors import storage_errno
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 ZIP_MAGIC = b"PK\x03\x04"
@@ -22,12 +27,30 @@ class Invalid(Exception):
 
 
 # ------------------------------------------------------------------------------------------------ child side
-def _sniff(path: Path) -> str:
+def _check_zip(zf: zipfile.ZipFile, cap: int) -> None:
+    """Entries are only ever read by the code's own names, never extracted by theirs; still, a zip that carries
+    paths meant to escape a folder, links, or more than `cap` bytes once expanded is refused as hostile."""
+    total = 0
+    for info in zf.infolist():
+        name = info.filename
+        parts = name.replace("\\", "/").split("/")
+        if name.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", name) or ".." in parts:
+            raise Invalid(f"zip entry {name!r}: an absolute path or a '..' component; not allowed")
+        if stat.S_ISLNK(info.external_attr >> 16):
+            raise Invalid(f"zip entry {name!r}: a symbolic link; not allowed")
+        total += info.file_size
+    if total > cap:
+        raise Invalid(f"zip: its entries expand to {total} bytes, over the limit of {cap} "
+                      "(4x DROP_MAX_UPLOAD_BYTES)")
+
+
+def _sniff(path: Path, cap: int) -> str:
     head = path.open("rb").read(8)
     if head.startswith(HDF5_MAGIC):
         return "hdf5"
     if head.startswith(ZIP_MAGIC):
         with zipfile.ZipFile(path) as zf:
+            _check_zip(zf, cap)
             names = zf.namelist()
         if any(n.endswith("main_data.hdf5") for n in names):
             return "minari"
@@ -37,40 +60,32 @@ def _sniff(path: Path) -> str:
     raise Invalid("file: not an HDF5 file, an .npz or a Minari zip (unrecognised leading bytes)")
 
 
-def _minari_to_hdf5(src: Path, dest: Path, cap: int) -> None:
+def _minari_env(zf: zipfile.ZipFile) -> str | None:
+    """The env id recorded in the dataset's metadata.json, if any."""
+    members = {Path(n).name: n for n in zf.namelist() if Path(n).parent.name == "data" or "/" not in n}
+    if "metadata.json" not in members:
+        return None
+    try:
+        meta = json.loads(zf.read(members["metadata.json"]))
+        spec = meta.get("env_spec")
+        spec = json.loads(spec) if isinstance(spec, str) else spec
+        return (spec or {}).get("id")
+    except (ValueError, AttributeError):
+        return None
+
+
+def _minari_arrays(raw: Path, cap: int) -> dict:
     """Concatenate Minari episodes into D4RL layout (observations[:-1] / [1:], terminations, truncations)."""
     import h5py
     import numpy as np
 
-    from drop_engine.data import from_arrays, save_hdf5
+    from drop_engine.safe_hdf5 import SafeHDF5
 
-    with zipfile.ZipFile(src) as zf:
-        members = {Path(n).name: n for n in zf.namelist() if Path(n).parent.name == "data" or "/" not in n}
-        main = next((n for n in zf.namelist() if n.endswith("main_data.hdf5")), None)
-        info = zf.getinfo(main)
-        if info.file_size > cap:
-            raise Invalid(f"main_data.hdf5: {info.file_size} bytes uncompressed exceeds the limit of {cap}")
-        raw = dest.with_name("minari_main.hdf5")
-        with zf.open(info) as fin, raw.open("wb") as fout:
-            copied = 0
-            while chunk := fin.read(1 << 20):
-                copied += len(chunk)
-                if copied > cap:
-                    raise Invalid("main_data.hdf5: larger than its zip entry claims")
-                fout.write(chunk)
-        env_name = None
-        if "metadata.json" in members:
-            try:
-                meta = json.loads(zf.read(members["metadata.json"]))
-                spec = meta.get("env_spec")
-                spec = json.loads(spec) if isinstance(spec, str) else spec
-                env_name = (spec or {}).get("id")
-            except (ValueError, AttributeError):
-                env_name = None
     cols: dict[str, list] = {k: [] for k in ("observations", "actions", "rewards", "next_observations", "terminals",
                                              "timeouts")}
     try:
         with h5py.File(raw, "r") as handle:
+            reader = SafeHDF5(handle, cap)
             episodes = sorted((k for k in handle if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
             if not episodes:
                 raise Invalid("main_data.hdf5: no episode_N groups")
@@ -79,22 +94,37 @@ def _minari_to_hdf5(src: Path, dest: Path, cap: int) -> None:
                 for key in ("observations", "actions", "rewards", "terminations", "truncations"):
                     if key not in ep or not isinstance(ep[key], h5py.Dataset):
                         raise Invalid(f"{name}/{key}: missing or not an array (only Box observation spaces are supported)")
-                obs = ep["observations"][()]
-                n = len(ep["actions"])
+                obs, actions = reader.read(f"{name}/observations"), reader.read(f"{name}/actions")
+                n = len(actions)
                 if len(obs) != n + 1:
                     raise Invalid(f"{name}/observations: expected {n + 1} rows (actions + 1), found {len(obs)}")
                 cols["observations"].append(obs[:-1])
                 cols["next_observations"].append(obs[1:])
-                cols["actions"].append(ep["actions"][()])
-                cols["rewards"].append(ep["rewards"][()])
-                term, trunc = ep["terminations"][()].astype(bool), ep["truncations"][()].astype(bool)
+                cols["actions"].append(actions)
+                cols["rewards"].append(reader.read(f"{name}/rewards"))
+                term = reader.read(f"{name}/terminations").astype(bool)
+                trunc = reader.read(f"{name}/truncations").astype(bool)
                 cols["terminals"].append(term)
                 cols["timeouts"].append(trunc & ~term)
     except OSError as exc:
         raise Invalid(f"main_data.hdf5: not a readable HDF5 file ({exc})") from None
+    return {k: np.concatenate(v) for k, v in cols.items()}
+
+
+def _minari_to_hdf5(src: Path, dest: Path, cap: int) -> None:
+    from drop_engine.data import from_arrays, save_hdf5
+
+    raw = dest.with_name("minari_main.hdf5")
+    try:
+        with zipfile.ZipFile(src) as zf:
+            main = next(n for n in zf.namelist() if n.endswith("main_data.hdf5"))
+            # zipfile stops at the entry's declared size (and then fails its CRC), which _check_zip has bounded.
+            with zf.open(main) as fin, raw.open("wb") as fout:
+                shutil.copyfileobj(fin, fout, 1 << 20)
+            env_name = _minari_env(zf)
+        arrays = _minari_arrays(raw, cap)
     finally:
         raw.unlink(missing_ok=True)
-    arrays = {k: np.concatenate(v) for k, v in cols.items()}
     from_arrays(arrays)  # validate before writing
     save_hdf5(dest, arrays, {"env_name": env_name} if env_name else {})
 
@@ -103,8 +133,6 @@ def _link_or_copy(src: Path, target: Path) -> None:
     try:
         os.link(src, target)
     except OSError:
-        import shutil
-
         shutil.copyfile(src, target)
 
 
@@ -112,15 +140,15 @@ def _child(src: Path, dest_dir: Path, cap: int) -> dict:
     from drop_engine.data import DatasetError, describe, load_dataset
 
     try:
-        kind = _sniff(src)
+        kind = _sniff(src, cap)
         if kind == "minari":
             target = dest_dir / "data.hdf5"
             _minari_to_hdf5(src, target, cap)
         else:
             target = dest_dir / ("data.npz" if kind == "npz" else "data.hdf5")
             _link_or_copy(src, target)
-        try:
-            report = describe(load_dataset(target)).to_dict()
+        try:  # a converted Minari file is our own output, made from arrays already held to `cap`
+            report = describe(load_dataset(target, max_bytes=None if kind == "minari" else cap)).to_dict()
         except BaseException:
             target.unlink(missing_ok=True)
             raise
@@ -155,7 +183,9 @@ def _entry(conn, src: str, dest_dir: str, cap: int, memory: int, cpu_s: int) -> 
     try:
         out = _child(Path(src), Path(dest_dir), cap)
     except BaseException as exc:  # anything unexpected is still the file's fault, said without a traceback
-        out = {"ok": False, "error": f"file: cannot be read ({type(exc).__name__}: {str(exc)[:200]})"}
+        # ...unless the disk is full or read-only: then the parent raises the OSError it is.
+        out = {"ok": False, "error": f"file: cannot be read ({type(exc).__name__}: {str(exc)[:200]})",
+               "errno": storage_errno(exc)}
     conn.send(out)
     conn.close()
 
@@ -187,6 +217,8 @@ async def validate_file(src: Path, dest_dir: Path, *, memory: int, timeout: floa
     """Validate in a limited child process; returns {"format", "file", "report"} or raises Invalid with the message
     for the client. A Minari zip may expand to at most 4x the upload limit."""
     result = await asyncio.to_thread(_run, src, dest_dir, 4 * max_bytes, memory, timeout)
+    if result.get("errno"):
+        raise OSError(result["errno"], os.strerror(result["errno"]))
     if not result["ok"]:
         raise Invalid(result["error"])
     return result

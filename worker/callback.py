@@ -64,12 +64,13 @@ class DbCallback(Callback):
                                data={"epoch": epoch, "mean_return": mean_return, "normalized_score": normalized_score}))
 
     def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
-        path = Path(path)
+        path = Path(path).resolve()
         with self.sessions.begin() as s:
             for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
-                if not Path(row.path).exists():  # pruned by the trainer
+                # pruned by the trainer, or rewritten: a stop at an epoch boundary saves that epoch's name again
+                if row.path == str(path) or not Path(row.path).exists():
                     s.delete(row)
-            s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=str(path.resolve()),
+            s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=str(path),
                                 size_bytes=path.stat().st_size if path.exists() else 0))
             s.add(JobEvent(job_id=self.job_id, type="checkpoint", message=f"checkpoint at epoch {epoch}, step {step}",
                            data={"epoch": epoch, "step": step}))

@@ -4,6 +4,8 @@
 - acks_late with reject_on_worker_lost: a message survives a worker crash; a redelivered copy is harmless because
   the task claims the job row with a conditional UPDATE (queued -> running) and does nothing if that fails.
 - time limits are set per message from the job's max_runtime.
+- a lost broker connection leaves running jobs running: they report to the database, and the reaper sends again
+  queued jobs whose message the broker lost.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ def make_celery(settings: Settings) -> Celery:
         "task_serializer": "json",
         "accept_content": ["json"],
         "broker_connection_retry_on_startup": True,
+        "worker_cancel_long_running_tasks_on_connection_loss": False,
         "worker_hijack_root_logger": False,
         "worker_send_task_events": False,
         "broker_transport_options": {"visibility_timeout": 7 * 24 * 3600},

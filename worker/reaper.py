@@ -1,11 +1,13 @@
-"""Find jobs whose worker died (stale heartbeat) and re-queue or fail them; re-send jobs never enqueued.
+"""Find jobs whose worker died (stale heartbeat) and re-queue or fail them; re-send queued jobs whose message never
+reached the broker or was lost there (Redis restarted without persistence keeps no messages).
 
-Every change is a conditional UPDATE on the row as it was seen, so several reapers (one per worker) never collide.
+Every change is a conditional UPDATE on the row as it was seen, so several reapers (one per worker) never collide:
+of several reapers, one takes each re-send. A job sent twice still runs once, because claiming it is conditional too.
 """
 from __future__ import annotations
 
 import logging
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Callable
 
 from sqlalchemy import select, update
@@ -18,43 +20,59 @@ log = logging.getLogger("drop.reaper")
 Enqueue = Callable[[str, int], None]
 
 
-def reap(sessions: sessionmaker[Session], settings: Settings, enqueue: Enqueue) -> list[str]:
-    """One pass; returns the ids of jobs it re-queued or re-sent."""
+def reap(sessions: sessionmaker[Session], settings: Settings, enqueue: Enqueue,
+         idle_since: datetime | None = None) -> list[str]:
+    """One pass; returns the ids of jobs it re-queued or re-sent.
+
+    `idle_since`: since when this worker has had a free slot. A worker with a free slot takes any message in its
+    queue, so a job still queued a while later whose message was sent before then has lost its message."""
     now = utcnow()
-    stale = now - timedelta(seconds=settings.stale_after_s)
-    resend: list[tuple[str, int]] = []
+    _expire_dead(sessions, settings, now)
+    # Never sent (broker down at creation: give the API 10 s to send it itself) or handed back by a worker.
+    due = Job.enqueued_at.is_(None) & ((Job.created_at < now - timedelta(seconds=10)) | (Job.attempts > 0)
+                                       | Job.started_at.is_not(None))
+    if idle_since is not None and idle_since <= now - timedelta(seconds=settings.redeliver_after_s):
+        due = due | (Job.enqueued_at < idle_since)
     with sessions() as s:
-        dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts, Job.heartbeat_at, Job.max_runtime_s)
+        rows = s.execute(select(Job.id, Job.max_runtime_s).where(Job.status == "queued", due)).all()
+    return [row.id for row in rows if _resend(sessions, enqueue, row.id, row.max_runtime_s, due)]
+
+
+def _expire_dead(sessions: sessionmaker[Session], settings: Settings, now: datetime) -> None:
+    """Re-queue (unsent, for the caller to send) or end the jobs whose worker stopped heartbeating."""
+    stale = now - timedelta(seconds=settings.stale_after_s)
+    with sessions() as s:
+        dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts)
                          .where(Job.status.in_(("running", "cancelling")), Job.heartbeat_at < stale)).all()
-        # Never sent (broker down at creation: give the API 10 s to send it itself) or handed back by a worker.
-        unsent = s.execute(select(Job.id, Job.max_runtime_s).where(
-            Job.status == "queued", Job.enqueued_at.is_(None),
-            (Job.created_at < now - timedelta(seconds=10)) | (Job.attempts > 0) | Job.started_at.is_not(None))).all()
     for row in dead:
         seen = (Job.id == row.id) & (Job.attempts == row.attempts) & (Job.status == row.status)
         if row.status == "cancelling":
             values, message = {"status": "cancelled", "finished_at": now}, "cancelled (its worker stopped responding)"
         elif row.attempts >= row.max_attempts:
-            values = {"status": "failed", "finished_at": now, "error_code": "worker_lost",
-                      "error_message": f"the worker stopped responding on all {row.attempts} attempts"}
-            message = "failed: worker lost on the last attempt"
+            reason = (f"attempts exhausted: the worker stopped responding on all {row.attempts} attempts "
+                      f"(max_attempts={row.max_attempts})")
+            values = {"status": "failed", "finished_at": now, "error_code": "worker_lost", "error_message": reason}
+            message = f"failed: {reason}"
         else:
             values = {"status": "queued", "worker": None, "enqueued_at": None}
             message = f"re-queued: the worker of attempt {row.attempts} stopped responding; will resume from checkpoint"
         with sessions.begin() as s:
             if s.execute(update(Job).where(seen).values(**values)).rowcount:
                 s.add(JobEvent(job_id=row.id, type="status", message=message, data={"status": values["status"]}))
-                if values["status"] == "queued":
-                    resend.append((row.id, row.max_runtime_s))
-    resend.extend((r.id, r.max_runtime_s) for r in unsent)
-    sent = []
-    for job_id, runtime in resend:
-        try:
-            enqueue(job_id, runtime)
-        except Exception:
-            log.exception("could not enqueue %s", job_id)
-            continue
+
+
+def _resend(sessions: sessionmaker[Session], enqueue: Enqueue, job_id: str, runtime: int, due) -> bool:
+    """Take the re-send (the UPDATE repeats the query's condition, so one reaper wins), then send; on failure mark the
+    job unsent, for the next pass."""
+    with sessions.begin() as s:
+        if not s.execute(update(Job).where(Job.id == job_id, Job.status == "queued", due)
+                         .values(enqueued_at=utcnow())).rowcount:
+            return False
+    try:
+        enqueue(job_id, runtime)
+    except Exception:
+        log.exception("could not enqueue %s", job_id)
         with sessions.begin() as s:
-            s.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
-        sent.append(job_id)
-    return sent
+            s.execute(update(Job).where(Job.id == job_id, Job.status == "queued").values(enqueued_at=None))
+        return False
+    return True

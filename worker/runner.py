@@ -17,9 +17,11 @@ from typing import Callable
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.exc_chain import causes
 from app.models import Dataset, Job, JobEvent, utcnow
 from app.settings import Settings
 from app.storage import job_dir
+from app.storage_errors import storage_failure
 
 from .callback import DbCallback
 
@@ -126,6 +128,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
 
     `shutting_down` is polled between steps: when it turns true the run stops with a checkpoint and the job goes back
     to the queue, to resume from that checkpoint on the next worker."""
+    started = time.monotonic()  # the task's soft time limit counts from here, engine imports included
     if shutting_down():
         release_unclaimed(sessions, job_id)
         return "skipped"
@@ -144,13 +147,13 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
     heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
     heartbeat.start()
     try:
-        return _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback)
+        return _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback, started)
     finally:
         heartbeat.stop()
 
 
 def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Dataset | None, config_data: dict,
-                      settings: Settings, attempt: int, callback: DbCallback) -> str:
+                      settings: Settings, attempt: int, callback: DbCallback, started: float) -> str:
     """Train, then record how it ended; every write is fenced by `attempt`."""
     from celery.exceptions import SoftTimeLimitExceeded
 
@@ -159,7 +162,6 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     from drop_engine.trainer import train
 
     job_id = job.id
-    started = time.monotonic()
     try:
         if dataset is None or not Path(dataset.path).is_file():
             raise DatasetError("file: the job's dataset was deleted")
@@ -169,13 +171,17 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         return "failed"
     except Exception as exc:
         # The soft limit is raised from a signal handler wherever the job happens to be, and a library may wrap
-        # it in its own error type: past the deadline, any failure is the timeout.
-        if isinstance(exc, SoftTimeLimitExceeded) or time.monotonic() - started >= job.max_runtime_s:
+        # it in its own error type (psycopg, interrupted mid-query): past the deadline, any failure is the timeout.
+        if (any(isinstance(e, SoftTimeLimitExceeded) for e in causes(exc))
+                or time.monotonic() - started >= job.max_runtime_s):
             _fail(sessions, job_id, attempt, "timeout", f"the attempt ran past max_runtime_s={job.max_runtime_s}",
                   traceback.format_exc())
             return "failed"
         log.exception("job %s failed", job_id)
-        _fail(sessions, job_id, attempt, "training_error", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+        # A full or read-only disk fails the job rather than retrying it: another attempt would meet the same disk.
+        code, message = (storage_failure(exc, "the run's checkpoint or policy")
+                         or ("training_error", f"{type(exc).__name__}: {exc}"))
+        _fail(sessions, job_id, attempt, code, message, traceback.format_exc())
         return "failed"
     if result.status == "completed":
         _add_onnx(sessions, job_id, result, dataset.obs_dim)

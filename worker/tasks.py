@@ -42,16 +42,22 @@ def run_job(job_id: str) -> str:
         engine.dispose()
 
 
-def _reaper_loop() -> None:
+def _reaper_loop(slots: int) -> None:
+    from celery.worker import state
+
+    from app.models import utcnow
+
     from .reaper import reap
 
     engine = make_engine(settings.sqlalchemy_url)
     sessions = make_sessionmaker(engine)
-    first = True
+    first, idle_since = True, None
     while first or not _stop.wait(settings.reap_every_s):  # a pass at start-up picks up jobs a stopped worker left
         first = False
+        # reserved_requests holds the jobs this worker has taken (running or waiting for a pool process).
+        idle_since = (idle_since or utcnow()) if len(state.reserved_requests) < slots else None
         try:
-            sent = reap(sessions, settings, lambda job_id, rt: enqueue(celery, settings, job_id, rt))
+            sent = reap(sessions, settings, lambda job_id, rt: enqueue(celery, settings, job_id, rt), idle_since)
             if sent:
                 log.warning("reaper re-sent jobs %s", ", ".join(sent))
         except Exception:
@@ -59,9 +65,9 @@ def _reaper_loop() -> None:
 
 
 @worker_ready.connect
-def _start_reaper(**_) -> None:
+def _start_reaper(sender, **_) -> None:
     _shutdown_marker(os.getpid()).unlink(missing_ok=True)  # left by a crashed worker that had our pid
-    threading.Thread(target=_reaper_loop, daemon=True, name="reaper").start()
+    threading.Thread(target=_reaper_loop, args=(sender.controller.concurrency,), daemon=True, name="reaper").start()
 
 
 @worker_shutting_down.connect

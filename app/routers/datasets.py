@@ -6,8 +6,8 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from .. import serialize
-from ..deps import DB, Config, Owner, owned_dataset
+from .. import quotas, serialize
+from ..deps import DB, Config, Owner, DatasetCursor, owned_dataset
 from ..ids import new_id
 from ..models import ACTIVE_STATUSES, Dataset, Job
 from ..problems import Problem
@@ -19,7 +19,8 @@ from ..validate import Invalid, validate_file
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
 
 
-def _save(s: Session, row: Dataset) -> None:
+def _save(s: Session, row: Dataset, settings: Settings) -> None:
+    quotas.check_storage(s, row.owner_id, settings, row.size_bytes)
     s.add(row)
     s.commit()
 
@@ -29,7 +30,8 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
                          owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
     dataset_id = new_id("ds")
     part = upload_dir(settings) / f"{dataset_id}.part"
-    upload = await receive(request, part, settings.max_upload_bytes, name)
+    limit, too_large = await run_in_threadpool(quotas.upload_limit, s, owner, settings)
+    upload = await receive(request, part, limit, name, too_large)
     target = dataset_dir(settings, dataset_id)
     try:
         target.mkdir(parents=True)
@@ -42,7 +44,7 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
         row = Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
                       sha256=upload.sha256, size_bytes=upload.size, path=str((target / result["file"]).resolve()),
                       env=report.get("env"), obs_dim=report["obs_dim"], act_dim=report["act_dim"], report=report)
-        await run_in_threadpool(_save, s, row)  # a busy SQLite must not block the event loop
+        await run_in_threadpool(_save, s, row, settings)  # a busy SQLite must not block the event loop
     except BaseException:
         remove_tree(target)
         raise
@@ -52,7 +54,7 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
 
 
 @router.get("", summary="List datasets, newest first")
-def list_datasets(after: str | None = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner,
+def list_datasets(after: DatasetCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner,
                   s: Session = DB) -> dict:
     q = select(Dataset).where(Dataset.owner_id == owner)
     if after:

@@ -10,8 +10,8 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from .. import serialize
-from ..deps import DB, Config, Owner, owned_dataset, owned_job
+from .. import quotas, serialize
+from ..deps import DB, Config, Owner, JobCursor, owned_dataset, owned_job
 from ..ids import new_id
 from ..jobcreate import JobRequest, build
 from ..models import JOB_STATUSES, Job, JobEvent, utcnow
@@ -34,9 +34,11 @@ def _replay(s: Session, owner: str, key: str, digest: str) -> Job | None:
     return row
 
 
-@router.post("", status_code=201, summary="Create a training job")
+@router.post("", status_code=201, summary="Create a training job",
+             responses={200: {"description": "A replay: the job an earlier request with this Idempotency-Key made",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
 def create_job(req: JobRequest, request: Request, response: Response,
-               idempotency_key: str | None = Header(None, max_length=200),
+               idempotency_key: str | None = Header(None, min_length=1, max_length=200),
                owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
     digest = _request_hash(req)
     if idempotency_key:
@@ -46,6 +48,7 @@ def create_job(req: JobRequest, request: Request, response: Response,
             return serialize.job(existing)
     dataset = owned_dataset(s, owner, req.dataset_id, lock=True)
     env, config = build(req, dataset)
+    quotas.check_active_jobs(s, owner, settings)
     job = Job(id=new_id("job"), owner_id=owner, dataset_id=dataset.id, algorithm=config["algorithm"], env=env,
               preset=config["preset"], overrides=req.overrides, seed=req.seed, config=config, status="queued",
               max_attempts=settings.max_attempts, max_runtime_s=req.max_runtime_s or settings.max_runtime_s,
@@ -72,7 +75,7 @@ def create_job(req: JobRequest, request: Request, response: Response,
 
 
 @router.get("", summary="List jobs, newest first")
-def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUSES)), after: str | None = None,
+def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUSES)), after: JobCursor = None,
               limit: int = Query(20, ge=1, le=100), owner: str = Owner, s: Session = DB) -> dict:
     q = select(Job).where(Job.owner_id == owner)
     if status is not None:
@@ -90,8 +93,12 @@ def get_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
     return serialize.job(owned_job(s, owner, job_id))
 
 
-@router.post("/{job_id}/cancel", status_code=202, summary="Cancel: a queued job at once, a running one at its next step")
-def cancel_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+@router.post("/{job_id}/cancel", status_code=202, summary="Cancel: a queued job at once, a running one at its next step",
+             responses={200: {"description": "Already cancelled: nothing changed",
+                              "content": {"application/json": {"schema": {"type": "object"}}}}})
+def cancel_job(job_id: str, response: Response, owner: str = Owner, s: Session = DB) -> dict:
+    """Safe to repeat: asking again while it stops answers 202 again, and once it is cancelled 200; nothing changes.
+    A job that succeeded or failed cannot be cancelled: 409."""
     owned_job(s, owner, job_id)
     now = utcnow()
     done = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
@@ -106,6 +113,8 @@ def cancel_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
     s.commit()
     s.expire_all()
     job = owned_job(s, owner, job_id)
-    if job.status in ("succeeded", "failed") or (job.status == "cancelled" and not done):
-        raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status})")
+    if job.status in ("succeeded", "failed"):
+        raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status}); it cannot be cancelled")
+    if job.status == "cancelled" and not done:
+        response.status_code = 200
     return serialize.job(job)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -24,6 +24,8 @@ from ..storage import job_dir
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
 SSE_POLL_S = 0.5
 SSE_KEEPALIVE_S = 15.0
+MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a larger cursor is a 422, not a 500
+After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
 
 
 def _events_after(factory, job_id: str, after: int, limit: int) -> tuple[list[dict], str]:
@@ -61,12 +63,12 @@ async def _stream(request: Request, job_id: str, after: int):
 
 
 @router.get("/events", summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends")
-def job_events(job_id: str, request: Request, after: int = Query(0, ge=0), limit: int = Query(100, ge=1, le=1000),
+def job_events(job_id: str, request: Request, after: After = 0, limit: int = Query(100, ge=1, le=1000),
                owner: str = Owner, s: Session = DB):
     owned_job(s, owner, job_id)
     if "text/event-stream" in request.headers.get("accept", ""):
         last = request.headers.get("last-event-id", "")
-        start = int(last) if last.isdigit() else after
+        start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after
         return StreamingResponse(_stream(request, job_id, start), media_type="text/event-stream",
                                  headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
     q = select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after).order_by(JobEvent.id)
@@ -74,8 +76,9 @@ def job_events(job_id: str, request: Request, after: int = Query(0, ge=0), limit
 
 
 @router.get("/metrics", summary="Scalar training metrics, oldest first; filter by name")
-def job_metrics(job_id: str, name: str | None = None, after: int = Query(0, ge=0),
-                limit: int = Query(1000, ge=1, le=10000), owner: str = Owner, s: Session = DB) -> dict:
+def job_metrics(job_id: str, name: str | None = Query(None, max_length=100, pattern=r"^[^\x00]*$"),
+                after: After = 0, limit: int = Query(1000, ge=1, le=10000), owner: str = Owner,
+                s: Session = DB) -> dict:
     owned_job(s, owner, job_id)
     q = select(JobMetric).where(JobMetric.job_id == job_id, JobMetric.id > after)
     if name:

@@ -1,0 +1,72 @@
+"""Per-owner quotas: unfinished jobs (429) and stored dataset bytes (413).
+
+Each check counts under a lock on the owner's row, taken by a no-op UPDATE: PostgreSQL holds that row lock and SQLite
+its database write lock until the transaction ends, so two requests of one owner at once cannot both count the same
+total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from .models import ACTIVE_STATUSES, Dataset, Job, Owner
+from .problems import Problem
+from .settings import Settings
+
+RETRY_AFTER_S = 60  # jobs take minutes; asking again sooner is pointless
+
+
+def _lock_owner(s: Session, owner_id: str) -> None:
+    s.execute(update(Owner).where(Owner.id == owner_id).values(name=Owner.name))
+
+
+def _refuse(s: Session, problem: Problem) -> Problem:
+    s.rollback()
+    return problem
+
+
+def check_active_jobs(s: Session, owner_id: str, settings: Settings) -> None:
+    """Raise 429 if the owner already has the most unfinished jobs allowed; the lock lasts until the caller commits."""
+    _lock_owner(s, owner_id)
+    active = s.scalar(select(func.count()).select_from(Job)
+                      .where(Job.owner_id == owner_id, Job.status.in_(ACTIVE_STATUSES)))
+    limit = settings.max_active_jobs_per_owner
+    if active >= limit:
+        raise _refuse(s, Problem(
+            429, "job_quota_exceeded",
+            f"you have {active} unfinished jobs (queued, running or cancelling) and at most {limit} are allowed "
+            "at once (DROP_MAX_ACTIVE_JOBS_PER_OWNER); wait for one to finish or cancel one",
+            headers={"Retry-After": str(RETRY_AFTER_S)}))
+
+
+def stored_bytes(s: Session, owner_id: str) -> int:
+    return s.scalar(select(func.coalesce(func.sum(Dataset.size_bytes), 0)).where(Dataset.owner_id == owner_id))
+
+
+def _storage_problem(stored: int, quota: int, detail: str) -> Problem:
+    return Problem(413, "storage_quota_exceeded",
+                   f"{detail}: your datasets take {stored} of the {quota} bytes allowed per owner "
+                   "(DROP_MAX_STORED_BYTES_PER_OWNER); delete datasets you no longer need to make room")
+
+
+def upload_limit(s: Session, owner_id: str, settings: Settings) -> tuple[int, Callable[[], Problem] | None]:
+    """The most bytes the owner's next upload may have, and the problem to raise past it (None: the plain upload
+    limit). Ends the session's transaction, so no connection is held while the upload streams."""
+    stored = stored_bytes(s, owner_id)
+    s.close()
+    quota = settings.max_stored_bytes_per_owner
+    room = max(quota - stored, 0)
+    if room >= settings.max_upload_bytes:
+        return settings.max_upload_bytes, None
+    return room, lambda: _storage_problem(stored, quota, f"this upload is larger than the {room} bytes left")
+
+
+def check_storage(s: Session, owner_id: str, settings: Settings, size: int) -> None:
+    """Raise 413 if a new dataset of `size` bytes takes the owner past the quota (recounted under the owner lock, as
+    uploads of one owner may run side by side); the lock lasts until the caller commits."""
+    _lock_owner(s, owner_id)
+    stored, quota = stored_bytes(s, owner_id), settings.max_stored_bytes_per_owner
+    if stored + size > quota:
+        raise _refuse(s, _storage_problem(stored, quota, f"this {size}-byte dataset does not fit"))
