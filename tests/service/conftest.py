@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import os
 import secrets
+import signal
+import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import psycopg
 import pytest
@@ -39,14 +43,33 @@ def hopper_file(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.fixture(scope="session")
-def pg_url():
+@contextmanager
+def database() -> Iterator[str]:
+    """A new empty PostgreSQL database, dropped afterwards."""
     name = f"drop_test_{secrets.token_hex(4)}"
     with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
         conn.execute(f'CREATE DATABASE "{name}"')
-    yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
-        conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+    try:
+        yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
+    finally:
+        with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
+            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+@pytest.fixture(scope="session")
+def pg_url():
+    with database() as url:
+        yield url
+
+
+@pytest.fixture
+def own_settings(settings):
+    """Settings on a migrated database and a queue of the test's own: its workers' reapers see only its jobs."""
+    from app.db import upgrade
+
+    with database() as url:
+        upgrade(url)
+        yield settings.model_copy(update={"database_url": url, "queue": f"{settings.queue}-{secrets.token_hex(3)}"})
 
 
 @pytest.fixture(scope="session")
@@ -65,6 +88,12 @@ def settings(tmp_path_factory, pg_url) -> Settings:
         client.delete(key)
 
 
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -76,23 +105,44 @@ def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: floa
     raise RuntimeError(f"{needle!r} not seen; log:\n{path.read_text(errors='replace')[-4000:]}")
 
 
+def start_worker(settings: Settings, log: Path) -> subprocess.Popen:
+    """A `drop worker` in a process group of its own, so kill_group takes its pool children with it."""
+    with log.open("ab") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
+                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        wait_for_line(log, " ready.", proc, 60)
+    except BaseException:
+        kill_group(proc)
+        raise
+    return proc
+
+
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL a worker and its pool children: a crash, with no chance to checkpoint or hand the job back."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+
+
+def stop_worker(proc: subprocess.Popen) -> None:
+    """Warm shutdown, or a kill if it takes too long."""
+    proc.terminate()
+    try:
+        proc.wait(20)
+    except subprocess.TimeoutExpired:
+        kill_group(proc)
+
+
 @pytest.fixture(scope="session")
 def worker(settings, tmp_path_factory):
     """One real `drop worker` process consuming the test queue."""
-    log = tmp_path_factory.mktemp("logs") / "worker.log"
-    with log.open("wb") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
-                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT)
-    try:
-        wait_for_line(log, " ready.", proc, 60)
-        yield proc
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    proc = start_worker(settings, tmp_path_factory.mktemp("logs") / "worker.log")
+    yield proc
+    stop_worker(proc)
 
 
 @pytest.fixture(scope="session")

@@ -1,14 +1,12 @@
-"""Bearer tokens and ownership: another owner's objects answer 404, as if they did not exist."""
+"""Bearer tokens and ownership: a missing, malformed or revoked token answers 401, another owner's objects 404."""
 from __future__ import annotations
 
+import secrets
+
+import pytest
 from sqlalchemy import select
 
-
-def test_requests_without_a_valid_token_are_401(client):
-    for headers in ({}, {"Authorization": "Bearer nope"}, {"Authorization": "Basic abc"}):
-        r = client.get("/v1/datasets", headers=headers)
-        assert r.status_code == 401
-        assert r.headers["content-type"] == "application/problem+json" and r.json()["code"] == "unauthorized"
+from .conftest import settings_env
 
 
 def test_tokens_are_stored_hashed(app, tokens):
@@ -38,3 +36,90 @@ def test_owner_cannot_see_another_owners_objects(alice, bob, hopper_file):
 
     assert alice.get(f"/v1/datasets/{ds['id']}").status_code == 200
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+@pytest.fixture
+def carol(app):
+    """A fresh owner with two tokens, so one can be revoked while the other still works."""
+    from app.auth import create_token
+
+    name = f"carol-{secrets.token_hex(4)}"
+    return name, create_token(app.state.sessions, name), create_token(app.state.sessions, name)
+
+
+def _bearer(token: str) -> dict:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def _assert_401(r, needle: str) -> None:
+    assert r.status_code == 401, r.text
+    assert r.headers["content-type"] == "application/problem+json" and r.headers["www-authenticate"] == "Bearer"
+    body = r.json()
+    assert body["code"] == "unauthorized" and needle in body["detail"], body
+
+
+def test_malformed_headers_are_401(client, carol):
+    _, token, _ = carol
+    missing = "send `Authorization: Bearer <token>`"
+    cases = [
+        ({}, missing),
+        ({"Authorization": ""}, missing),
+        ({"Authorization": "Bearer"}, missing),
+        ({"Authorization": "Bearer    "}, missing),
+        ({"Authorization": token}, missing),  # no scheme
+        ({"Authorization": f"Token {token}"}, missing),  # a real token under the wrong scheme
+        ({"Authorization": "Basic YWxpY2U6c2VjcmV0"}, missing),
+        ({"Authorization": "Bearer garbage"}, "unknown or revoked"),
+        ({"Authorization": f"Bearer {token[:-1]}"}, "unknown or revoked"),
+        ({"Authorization": f"Bearer {token}x"}, "unknown or revoked"),
+        ({"Authorization": "Bearer " + "x" * 100_000}, "unknown or revoked"),
+        ({"Authorization": "Bearer drop_ключ€🔑".encode()}, "unknown or revoked"),  # non-ASCII bytes
+        ({"Authorization": b"Bearer drop_\xff\xfe\x80"}, "unknown or revoked"),  # not even UTF-8
+    ]
+    for headers, needle in cases:
+        _assert_401(client.get("/v1/datasets", headers=headers), needle)
+    # The scheme is case-insensitive (RFC 9110) and spaces around the token do not matter.
+    assert client.get("/v1/datasets", headers={"Authorization": f"bearer   {token}  "}).status_code == 200
+
+
+def _cli(settings, monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
+    from app.cli import main
+
+    for key, value in settings_env(settings).items():
+        if key.startswith("DROP_"):
+            monkeypatch.setenv(key, value)
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_revoked_token_is_refused_at_once(client, settings, carol, monkeypatch, capsys):
+    name, first, second = carol
+    assert client.get("/v1/datasets", headers=_bearer(first)).status_code == 200
+
+    code, out, _ = _cli(settings, monkeypatch, capsys, "token", "list", "--owner", name)
+    ids = [line.split()[0] for line in out.splitlines()[1:]]
+    assert code == 0 and len(ids) == 2 and all(line.endswith(" -") for line in out.splitlines()[1:])
+
+    code, out, _ = _cli(settings, monkeypatch, capsys, "token", "revoke", first)  # by the token itself
+    assert code == 0 and "revoked" in out
+    _assert_401(client.get("/v1/datasets", headers=_bearer(first)), "unknown or revoked")
+    assert client.get("/v1/datasets", headers=_bearer(second)).status_code == 200  # the owner's other token
+
+    revoked = next(i for i in ids if i in out)
+    other = next(i for i in ids if i != revoked)
+    code, out, _ = _cli(settings, monkeypatch, capsys, "token", "revoke", other[:-3])  # by the start of its id
+    assert code == 0 and other in out
+    _assert_401(client.get("/v1/datasets", headers=_bearer(second)), "unknown or revoked")
+
+    code, out, _ = _cli(settings, monkeypatch, capsys, "token", "list", "--owner", name)
+    assert code == 0 and not any(line.endswith(" -") for line in out.splitlines()[1:])
+
+
+def test_revoke_needs_exactly_one_match(settings, carol, monkeypatch, capsys):
+    code, _, err = _cli(settings, monkeypatch, capsys, "token", "revoke", "tok_")
+    assert code == 2 and "more than one token" in err
+    code, _, err = _cli(settings, monkeypatch, capsys, "token", "revoke", "tok_nope")
+    assert code == 2 and "no token matches 'tok_nope'" in err
+    code, _, err = _cli(settings, monkeypatch, capsys, "token", "revoke", "drop_not-a-real-token")
+    assert code == 2 and "no token matches" in err

@@ -1,4 +1,6 @@
-"""Cancellation of a queued and of a running job, and the dataset that cannot be deleted while a job uses it."""
+"""Cancellation of a queued and of a running job (the running one stops at its next step with a final checkpoint),
+cancelling twice (the same answer, no second transition), cancelling a finished job (409), and the dataset that
+cannot be deleted while a job uses it."""
 from __future__ import annotations
 
 import time
@@ -21,18 +23,31 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     # The single worker is busy, so the second job is still queued: it is cancelled at once.
     r = alice.post(f"/v1/jobs/{queued['id']}/cancel")
     assert r.status_code == 202 and r.json()["status"] == "cancelled"
-    assert alice.post(f"/v1/jobs/{queued['id']}/cancel").status_code == 409
+    again = alice.post(f"/v1/jobs/{queued['id']}/cancel")
+    assert again.status_code == 200 and again.json()["status"] == "cancelled"
+    assert again.json()["finished_at"] == r.json()["finished_at"]
 
     r = alice.delete(f"/v1/datasets/{ds['id']}")
     assert r.status_code == 409 and r.json()["code"] == "dataset_in_use"
 
     r = alice.post(f"/v1/jobs/{running['id']}/cancel")
     assert r.status_code == 202 and r.json()["status"] in ("cancelling", "cancelled")
-    done = alice.wait(running["id"], {"cancelled", "succeeded", "failed"}, timeout=60)
+    again = alice.post(f"/v1/jobs/{running['id']}/cancel")
+    assert (again.status_code, again.json()["status"]) in ((202, "cancelling"), (200, "cancelled")), again.json()
+    done = alice.wait(running["id"], {"cancelled", "succeeded", "failed"}, timeout=20)  # its next step is ms away
     assert done["status"] == "cancelled", done
     assert done["progress"]["epoch"] < 500
+    assert alice.post(f"/v1/jobs/{running['id']}/cancel").status_code == 200
+
+    events = alice.get(f"/v1/jobs/{running['id']}/events", params={"limit": 1000}).json()["data"]
+    requested = [i for i, e in enumerate(events) if e["message"] == "cancellation requested"]
+    assert len(requested) == 1, "a second cancel is not a second transition"
+    assert events[-1]["message"] == "cancelled at a step boundary; final checkpoint written"
+    # The final checkpoint: written after the request, where the run stopped, and the newest one listed.
+    last = [e["data"] for e in events[requested[0]:] if e["type"] == "checkpoint"][-1]
     ckpts = alice.get(f"/v1/jobs/{running['id']}/checkpoints").json()["data"]
-    assert ckpts, "a cancelled run writes a final checkpoint"
+    assert max((c["epoch"], c["step"]) for c in ckpts) == (last["epoch"], last["step"])
+    assert last["epoch"] == done["progress"]["epoch"]
     r = alice.get(f"/v1/jobs/{running['id']}/policy")
     assert r.status_code == 409 and r.headers["content-type"] == "application/problem+json"
 
@@ -50,4 +65,22 @@ def test_attempt_past_max_runtime_fails_with_timeout(alice, worker, hopper_file)
     done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
     assert done["status"] == "failed" and done["error"]["code"] == "timeout", done
     assert "max_runtime_s=8" in done["error"]["message"]
+    _assert_cannot_cancel(alice, done)
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def test_cancel_succeeded_job_is_409(alice, worker, hopper_file):
+    ds = alice.upload(hopper_file).json()
+    job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
+    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
+    assert done["status"] == "succeeded", done
+    _assert_cannot_cancel(alice, done)
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def _assert_cannot_cancel(alice, done: dict) -> None:
+    r = alice.post(f"/v1/jobs/{done['id']}/cancel")
+    assert r.status_code == 409 and r.headers["content-type"] == "application/problem+json"
+    assert r.json()["code"] == "job_finished" and done["status"] in r.json()["detail"]
+    after = alice.get(f"/v1/jobs/{done['id']}").json()
+    assert (after["status"], after["finished_at"]) == (done["status"], done["finished_at"])

@@ -2,33 +2,12 @@
 attempt resumes from the newest checkpoint instead of starting over. Real worker processes, killed with SIGKILL."""
 from __future__ import annotations
 
-import os
 import secrets
-import signal
-import subprocess
-import sys
 import time
 
 import pytest
 
-from .conftest import REPO, _Authed, settings_env, wait_for_line
-
-
-def _start_worker(settings, log):
-    with log.open("ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
-                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-    wait_for_line(log, " ready.", proc, 60)
-    return proc
-
-
-def _kill_group(proc) -> None:
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    proc.wait()
+from .conftest import _Authed, kill_group, start_worker, stop_worker
 
 
 @pytest.fixture
@@ -44,7 +23,7 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
     from app.main import create_app
 
     log = tmp_path / "workers.log"
-    first = _start_worker(crash_settings, log)
+    first = start_worker(crash_settings, log)
     second = None
     try:
         with TestClient(create_app(crash_settings), raise_server_exceptions=False) as client:
@@ -60,10 +39,10 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
                 assert cur["status"] in ("queued", "running"), cur
                 time.sleep(0.1)
             assert cur["status"] == "running", cur
-            _kill_group(first)
+            kill_group(first)
             killed_at_epoch = cur["progress"]["epoch"]
 
-            second = _start_worker(crash_settings, log)
+            second = start_worker(crash_settings, log)
             done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=150)
             assert done["status"] == "succeeded", (done, alice.get(f"/v1/jobs/{job['id']}/events").json())
             assert done["attempts"] == 2
@@ -79,10 +58,6 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
             assert 1 <= first_epoch <= killed_at_epoch + 1, "resumed from a checkpoint, not from scratch"
             assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
     finally:
-        _kill_group(first)
+        kill_group(first)
         if second is not None:
-            second.terminate()
-            try:
-                second.wait(20)
-            except subprocess.TimeoutExpired:
-                _kill_group(second)
+            stop_worker(second)

@@ -49,3 +49,31 @@ def test_reaper(app, settings):
         s.delete(s.get(Owner, owner.id))
     with sessions() as s:
         assert s.scalar(select(Job.id).where(Job.id.in_(ids))) is None
+
+
+def test_idle_worker_resends_queued_jobs_whose_message_was_lost(app, settings):
+    """A worker with a free slot takes every message in its queue, so a job still queued after the worker has been
+    idle a while, and sent before that, has lost its message (Redis restarted): it is sent again, by one reaper."""
+    sessions = app.state.sessions
+    now = utcnow()
+    idle_since = now - timedelta(seconds=settings.redeliver_after_s + 5)
+    with sessions.begin() as s:
+        owner = Owner(id=new_id("own"), name=f"reaper-{new_id('x')}")
+        s.add(owner)
+        s.flush()
+        lost = _job(s, owner.id, status="queued", enqueued_at=idle_since - timedelta(seconds=1))
+        fresh = _job(s, owner.id, status="queued", enqueued_at=idle_since + timedelta(seconds=1))
+    try:
+        sent: list[str] = []
+        record = lambda job_id, runtime: sent.append(job_id)  # noqa: E731
+        recently_idle = now - timedelta(seconds=settings.redeliver_after_s - 5)
+        assert lost.id not in reap(sessions, settings, record, recently_idle), "idle too briefly to tell"
+        assert lost.id not in reap(sessions, settings, record, None), "a busy worker cannot tell"
+        assert lost.id in reap(sessions, settings, record, idle_since)
+        assert lost.id not in reap(sessions, settings, record, idle_since), "sent once, now enqueued after idle_since"
+        assert sent.count(lost.id) == 1 and fresh.id not in sent
+        with sessions() as s:
+            assert s.get(Job, lost.id).enqueued_at > idle_since and s.get(Job, lost.id).status == "queued"
+    finally:
+        with sessions.begin() as s:
+            s.delete(s.get(Owner, owner.id))
