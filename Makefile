@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test bench-data bench-speed bench-table bench-penalty clean
+.PHONY: install run test bench-data bench-speed bench-table bench-penalty bench-load clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -39,6 +39,10 @@ bench-table: $(STAMP)
 # Needs a finished DROP run: make bench-penalty RUN=runs/hopper-drop DATASET=.../hopper-medium.hdf5
 bench-penalty: $(STAMP)
 	$(BIN)/python bench/penalty_vs_error.py --run $(RUN) --dataset $(DATASET)
+
+# Needs PostgreSQL on 127.0.0.1:5432 (user postgres) and Redis on 127.0.0.1:6379, as the service tests do.
+bench-load: $(STAMP)
+	$(BIN)/python bench/service_load.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache

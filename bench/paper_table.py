@@ -4,7 +4,11 @@ Reads `ENV-KIND.hdf5` from the `make bench-data` cache, trains every (dataset, a
 (an interrupted run resumes from its checkpoint), and writes the final and best D4RL normalised scores, mean and std
 over seeds, beside the behaviour policy's own score.
 
-    python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu]
+    python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu] [--jobs 2]
+
+Finished runs are kept in bench/results/paper_table.json, so the table fills up across machines and sessions: a run
+already recorded there with the same preset and overrides is not repeated (the datasets are seeded, so `make
+bench-data` remakes the same files).
 """
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ import json
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +64,7 @@ def behaviour_score(path: Path) -> float | None:
 
 def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
     def cell(scores: list[float]) -> str:
-        return f"{np.mean(scores):.1f} ± {np.std(scores):.1f}" if scores else "-"
+        return f"{np.mean(scores):.1f} ± {np.std(scores):.1f} (n={len(scores)})" if scores else "-"
 
     lines = ["| dataset | behaviour | " + " | ".join(f"{a.upper()} final | {a.upper()} best" for a in algorithms) + " |",
              "|---|---|" + "---|---|" * len(algorithms)]
@@ -85,29 +91,50 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bc-steps", type=int, default=20_000)
     p.add_argument("--runs", default=str(Path.home() / ".cache/drop-rl/bench-runs"))
     p.add_argument("--out", default="bench/results")
+    p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     args = p.parse_args(argv)
+    if args.jobs > 1:
+        args.set.append("threads=1")
 
-    records, behaviour = [], {}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = out / "paper_table.json"
+    same_setting = {"preset": args.preset, "set": sorted(args.set)}
+    kept = json.loads(results.read_text()) if results.exists() else {}
+    records = [r for r in kept.get("records", []) if r.get("setting", same_setting) == same_setting]
+    behaviour = dict(kept.get("behaviour", {}))
+
+    def key(r: dict) -> tuple:
+        return r["env"], r["kind"], r["algorithm"], r["seed"]
+
+    todo = []
     for env in args.envs:
         for kind in args.kinds:
             path = Path(args.data) / f"{env}-{kind}.hdf5"
             if not path.exists():
                 raise SystemExit(f"{path} is missing: run `make bench-data` first")
             behaviour[f"{env}-{kind}"] = behaviour_score(path)
-            for algorithm in args.algorithms:
-                for seed in args.seeds:
-                    records.append(run_one(path, env, kind, algorithm, seed, args))
-                    print(f"{env}-{kind} {algorithm} seed {seed}: final {records[-1]['final']:.1f}", flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "paper_table.json").write_text(json.dumps({"preset": args.preset, "seeds": args.seeds,
-                                                      "records": records}, indent=2))
-    text = (f"# Table 1 at CPU scale (preset `{args.preset}`, seeds {args.seeds}; D4RL normalised scores, "
-            f"mean ± std over seeds)\n\n" + table(records, behaviour, args.algorithms))
-    (out / "paper_table.md").write_text(text)
-    print(text)
-    return 0
+            todo += [(path, env, kind, algorithm, seed) for algorithm in args.algorithms for seed in args.seeds
+                     if (env, kind, algorithm, seed) not in {key(r) for r in records}]
 
+    def write() -> str:
+        ordered = sorted(records, key=key)
+        results.write_text(json.dumps({"behaviour": behaviour, "records": ordered}, indent=2))
+        text = (f"# Table 1 at CPU scale (preset `{args.preset}`{', ' + ' '.join(args.set) if args.set else ''}; "
+                f"D4RL normalised scores, mean ± std over n seeds)\n\n" + table(ordered, behaviour, args.algorithms))
+        (out / "paper_table.md").write_text(text)
+        return text
+
+    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+        futures = [pool.submit(run_one, *job, args) for job in todo]
+        for future in futures:
+            record = future.result()
+            records.append({**record, "setting": same_setting})
+            print(f"{record['env']}-{record['kind']} {record['algorithm']} seed {record['seed']}: "
+                  f"final {record['final']:.1f}", flush=True)
+            write()
+    print(write())
+    return 0
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,420 @@
+"""The service under load: the real API and a worker training a job, while many clients poll, upload and stream.
+
+Starts everything on loopback from scratch: a throwaway PostgreSQL database (127.0.0.1:5432, user postgres), a private
+Redis queue (127.0.0.1:6379), `drop api` (uvicorn) and one `drop worker` as subprocesses. It makes a token with
+`drop token create`, uploads a small real hopper dataset and starts a long `cpu`-preset job on it. Once the worker
+trains, for --seconds: --clients clients poll four read endpoints back to back, --uploads clients upload --upload-mb MB
+D4RL-layout files one after another (each must answer 201 and then be readable with GET), and --sse clients stream
+the job's events. It records latency percentiles, counts and errors per endpoint, upload throughput, the API process's
+peak RSS and the job's fate (still running or succeeded, never failed or lost). Everything it started is removed at
+the end, Ctrl-C included.
+
+    .venv/bin/python bench/service_load.py [--seconds 60] [--clients 50] [--uploads 5] [--upload-mb 100] [--sse 3]
+    make bench-load                                   # the defaults
+    .venv/bin/python bench/service_load.py --clients 5 --uploads 1 --upload-mb 10 --seconds 10   # a quick look
+
+Writes bench/results/service_load.json and .md. The clients run in this process on the same machine as the service,
+so on a small machine their own CPU use is part of what the latencies measure.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import platform
+import secrets
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter, defaultdict
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Iterator
+
+import httpx
+import numpy as np
+import redis
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # the service tests' helpers: throwaway database, worker process, settings as env
+
+from app.settings import Settings  # noqa: E402
+from tests.service.conftest import (REDIS_URL, database, free_port, kill_group, settings_env,  # noqa: E402
+                                    start_worker, wait_for_line)
+
+MB = 1_000_000
+# Long enough to outlast any benchmark, small enough that epochs (and so events) come every few seconds.
+JOB_OVERRIDES = {"epochs": 100_000, "steps_per_epoch": 100, "eval_every": 5, "eval_episodes": 1,
+                 "checkpoint_every": 5, "log_every": 50, "dynamics.max_epochs": 5, "rollout.batch_size": 1000,
+                 "dice.pretrain_steps": 50, "dice.steps_per_epoch": 50}
+JOB_OK = {"running", "succeeded"}
+
+
+# ------------------------------------------------------------------------------------------------ data
+def make_files(folder: Path, upload_mb: float) -> tuple[Path, Path]:
+    """A small real hopper dataset to train on, and an upload of `upload_mb` MB: those rows tiled, uncompressed."""
+    from drop_engine.collect import collect_transitions, random_policy
+    from drop_engine.data import load_dataset, save_hdf5
+
+    rows = collect_transitions("hopper", random_policy(3, 0), 5000, seed=0)
+    attrs = {"env_name": "Hopper-v4"}
+    train = folder / "hopper-random.hdf5"
+    save_hdf5(train, rows, attrs)
+    per_row = sum(a[0].nbytes for a in rows.values())
+    index = np.arange(int(upload_mb * MB) // per_row) % len(rows["observations"])
+    upload = folder / "upload.hdf5"
+    save_hdf5(upload, {k: a[index] for k, a in rows.items()}, attrs, compress=False)
+    load_dataset(upload, env="hopper")  # the validator must accept it, or the benchmark measures refusals
+    return train, upload
+
+
+# ------------------------------------------------------------------------------------------------ the service
+@contextmanager
+def service(folder: Path, upload_bytes: int) -> Iterator[tuple[str, str, subprocess.Popen, subprocess.Popen]]:
+    """(API url, token, API process, worker process) on a fresh database and queue; all removed afterwards."""
+    with database() as url:
+        queue = f"drop-bench-{secrets.token_hex(4)}"
+        # Quotas far above what the benchmark sends, so none of its own traffic is refused.
+        settings = Settings(data_dir=folder / "data", database_url=url, broker_url=REDIS_URL, queue=queue,
+                            max_upload_bytes=max(2 * 1024**3, 2 * upload_bytes), max_stored_bytes_per_owner=2**50,
+                            max_active_jobs_per_owner=10_000, worker_threads=1)
+        env = settings_env(settings)
+        drop = [sys.executable, "-m", "app.cli"]
+        try:
+            subprocess.run([*drop, "db", "upgrade"], cwd=REPO, env=env, check=True, capture_output=True)
+            token = subprocess.run([*drop, "token", "create", "--name", "bench-load"], cwd=REPO, env=env, check=True,
+                                   capture_output=True, text=True).stdout.strip()
+            port = free_port()
+            log = folder / "api.log"
+            with log.open("ab") as out:
+                api = subprocess.Popen([*drop, "api", "--host", "127.0.0.1", "--port", str(port)], cwd=REPO, env=env,
+                                       stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+            try:
+                wait_for_line(log, "Application startup complete", api, 120)
+                worker = start_worker(settings, folder / "worker.log")
+                try:
+                    yield f"http://127.0.0.1:{port}", token, api, worker
+                finally:
+                    kill_group(worker)
+            finally:
+                kill_group(api)
+        finally:
+            client = redis.Redis.from_url(REDIS_URL)
+            for key in client.scan_iter(f"{queue}*"):
+                client.delete(key)
+
+
+def notable_lines(log: Path, most: int = 40) -> list[str]:
+    """The warnings, errors and tracebacks a server process logged: the server's side of any problem."""
+    lines = [line for line in log.read_text(errors="replace").splitlines()
+             if any(word in line for word in ("WARNING", "ERROR", "CRITICAL", "Traceback", "Error:"))]
+    return lines[:most]
+
+
+def rss_mb(pid: int, field: str) -> float:
+    """VmRSS (now) or VmHWM (peak) of a process, in MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024 / MB
+    raise LookupError(field)
+
+
+# ------------------------------------------------------------------------------------------------ the clients
+class Recorder:
+    """Latency and outcome of every request, per endpoint, and every unexpected outcome."""
+
+    def __init__(self) -> None:
+        self.latency: dict[str, list[float]] = defaultdict(list)
+        self.statuses: dict[str, Counter] = defaultdict(Counter)
+        self.problems: Counter = Counter()
+
+    def problem(self, endpoint: str, what: str) -> None:
+        self.problems[f"{endpoint}: {what}"] += 1
+
+    def failed(self, endpoint: str, exc: Exception) -> None:
+        """A request that got no answer, named by its innermost cause (httpx's own messages are often empty)."""
+        root = exc
+        while root.__context__ is not None:
+            root = root.__context__
+        self.problem(endpoint, f"{type(exc).__name__} ({type(root).__name__}: {str(root)[:120]})")
+
+    async def call(self, endpoint: str, request) -> httpx.Response | None:
+        start = time.perf_counter()
+        try:
+            response = await request
+        except httpx.HTTPError as exc:
+            self.latency[endpoint].append(time.perf_counter() - start)
+            self.statuses[endpoint][type(exc).__name__] += 1
+            self.failed(endpoint, exc)
+            return None
+        self.latency[endpoint].append(time.perf_counter() - start)
+        self.statuses[endpoint][str(response.status_code)] += 1
+        if not response.is_success:
+            code = response.json().get("code", "") if "json" in response.headers.get("content-type", "") else ""
+            self.problem(endpoint, f"{response.status_code} {code}".strip())
+        return response
+
+    def errors(self, endpoint: str) -> int:
+        return sum(n for status, n in self.statuses[endpoint].items() if not status.startswith("2"))
+
+
+async def poll(client: httpx.AsyncClient, targets: list[tuple[str, str]], first: int, stop_at: float,
+               rec: Recorder) -> None:
+    i = first
+    while time.monotonic() < stop_at:
+        endpoint, url = targets[i % len(targets)]
+        i += 1
+        await rec.call(endpoint, client.get(url))
+
+
+async def upload_loop(client: httpx.AsyncClient, path: Path, stop_at: float, rec: Recorder, out: list[dict]) -> None:
+    """Upload the file again and again until the time is up; each must be a 201 whose dataset GET then returns."""
+    size = path.stat().st_size
+    while time.monotonic() < stop_at:
+        sent: dict[str, float] = {}
+
+        async def body():
+            with path.open("rb") as fh:
+                while chunk := fh.read(1 << 20):
+                    yield chunk
+            sent["at"] = time.perf_counter()
+
+        start = time.perf_counter()
+        response = await rec.call("POST /v1/datasets", client.post(
+            "/v1/datasets", params={"name": f"load-{len(out)}.hdf5"}, content=body(),
+            headers={"Content-Type": "application/x-hdf5", "Content-Length": str(size)}, timeout=900))
+        seconds = time.perf_counter() - start
+        record = {"status": response.status_code if response is not None else None, "seconds": round(seconds, 3),
+                  "send_s": round(sent.get("at", start + seconds) - start, 3), "mb_s": round(size / MB / seconds, 2)}
+        out.append(record)
+        if record["status"] != 201:
+            continue
+        record["dataset_id"] = response.json()["id"]
+        check = await rec.call("GET /v1/datasets/{id}", client.get(f"/v1/datasets/{record['dataset_id']}"))
+        record["readable"] = (check is not None and check.status_code == 200
+                              and check.json().get("size_bytes") == size)
+        if not record["readable"]:
+            rec.problem("POST /v1/datasets", f"dataset {record['dataset_id']} answered 201 but GET does not return it")
+
+
+async def stream_events(client: httpx.AsyncClient, url: str, rec: Recorder, delays: list[float]) -> None:
+    """Follow the job's event stream (reconnecting with Last-Event-ID) until cancelled; note each event's delay from
+    its creation to its arrival here."""
+    last, since = None, datetime.now(timezone.utc)  # events from before are replayed, not delivered late
+    while True:
+        headers = {"Accept": "text/event-stream", **({"Last-Event-ID": last} if last else {})}
+        start = time.perf_counter()
+        try:
+            async with client.stream("GET", url, headers=headers, timeout=httpx.Timeout(60, read=None)) as response:
+                rec.latency["GET /v1/jobs/{id}/events (SSE connect)"].append(time.perf_counter() - start)
+                rec.statuses["GET /v1/jobs/{id}/events (SSE connect)"][str(response.status_code)] += 1
+                if response.status_code != 200:
+                    rec.problem("SSE", f"{response.status_code} on connect")
+                    await asyncio.sleep(1)
+                    continue
+                async for line in response.aiter_lines():
+                    if line == "event: end":  # the job finished: nothing more will come
+                        return
+                    if line.startswith("id: "):
+                        last = line[4:]
+                    elif line.startswith("data: ") and '"created_at"' in line:
+                        created = datetime.fromisoformat(json.loads(line[6:])["created_at"])
+                        if created >= since:
+                            delays.append((datetime.now(timezone.utc) - created).total_seconds())
+        except httpx.HTTPError as exc:
+            rec.failed("SSE", exc)
+            await asyncio.sleep(1)
+
+
+async def wait_training(client: httpx.AsyncClient, job_id: str, timeout: float = 300) -> dict:
+    """The job once its model is fitted and policy epochs (each with its events) have begun."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = (await client.get(f"/v1/jobs/{job_id}")).raise_for_status().json()
+        if job["status"] == "running" and (job.get("progress") or {}).get("phase") == "train":
+            return job
+        if job["status"] not in ("queued", "running"):
+            raise RuntimeError(f"job {job_id} is {job['status']} before the load started: {job.get('error')}")
+        await asyncio.sleep(0.5)
+    raise RuntimeError(f"job {job_id} did not start within {timeout:.0f} s")
+
+
+def percentiles(values: list[float], scale: float = 1000.0) -> dict:
+    if not values:
+        return {}
+    p = np.percentile(np.asarray(values) * scale, [0, 50, 95, 99, 100]).round(1).tolist()
+    return dict(zip(("min", "p50", "p95", "p99", "max"), p))
+
+
+async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: subprocess.Popen,
+                   train: Path, upload: Path) -> dict:
+    total = args.clients + args.uploads + args.sse + 4
+    limits = httpx.Limits(max_connections=total, max_keepalive_connections=total)
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {token}"}, limits=limits,
+                                 timeout=60) as client:
+        response = await client.post("/v1/datasets", params={"name": train.name}, content=train.read_bytes(),
+                                     headers={"Content-Type": "application/x-hdf5"})
+        dataset_id = response.raise_for_status().json()["id"]
+        response = await client.post("/v1/jobs", json={"dataset_id": dataset_id, "algorithm": "drop", "preset": "cpu",
+                                                       "seed": 0, "overrides": JOB_OVERRIDES})
+        job_id = response.raise_for_status().json()["id"]
+        job_start = await wait_training(client, job_id)
+        print(f"job {job_id} at {progress(job_start['progress'])}; load for {args.seconds:.0f} s", flush=True)
+
+        rec, uploads, delays = Recorder(), [], []
+        rss_start, load_start = rss_mb(api.pid, "VmRSS"), os.getloadavg()
+        targets = [("GET /v1/jobs/{id}", f"/v1/jobs/{job_id}"),
+                   ("GET /v1/jobs/{id}/events", f"/v1/jobs/{job_id}/events"),
+                   ("GET /v1/jobs", "/v1/jobs"),
+                   ("GET /v1/datasets/{id}", f"/v1/datasets/{dataset_id}")]
+        began = time.monotonic()
+        stop_at = began + args.seconds
+        streams = [asyncio.create_task(stream_events(client, f"/v1/jobs/{job_id}/events", rec, delays))
+                   for _ in range(args.sse)]
+        bounded = [asyncio.create_task(poll(client, targets, i, stop_at, rec)) for i in range(args.clients)]
+        bounded += [asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads)) for _ in range(args.uploads)]
+        try:
+            while not all(t.done() for t in bounded):
+                await asyncio.wait(bounded, timeout=10)
+                done = sum(len(v) for v in rec.latency.values())
+                print(f"  {time.monotonic() - began:5.0f} s: {done} requests, {sum(rec.problems.values())} problems, "
+                      f"{len(uploads)} uploads done", flush=True)
+        finally:  # the streams never end by themselves, and on Ctrl-C nothing may outlive the client
+            for t in streams + bounded:
+                t.cancel()
+            outcomes = await asyncio.gather(*bounded, *streams, return_exceptions=True)
+        polls_s, uploads_s = args.seconds, time.monotonic() - began
+        for outcome in outcomes:
+            if isinstance(outcome, Exception):
+                rec.failed("client crashed", outcome)
+
+        job_end = (await client.get(f"/v1/jobs/{job_id}")).json()
+        if job_end["status"] not in JOB_OK:
+            rec.problem("job", f"ended {job_end['status']}: {job_end.get('error')}")
+        elif job_end["status"] == "running" and job_end.get("progress") == job_start["progress"]:
+            rec.problem("job", "made no progress during the load")
+        rss_peak = rss_mb(api.pid, "VmHWM") if api.poll() is None else None
+        for name, proc in (("API", api), ("worker", worker)):
+            if proc.poll() is not None:
+                rec.problem(name, f"process exited with {proc.returncode}")
+        return report(args, rec, uploads, delays, upload.stat().st_size, polls_s, uploads_s, load_start,
+                      {"start": round(rss_start, 1), "peak": rss_peak and round(rss_peak, 1)},
+                      {"id": job_id, "status_end": job_end["status"], "progress_start": job_start["progress"],
+                       "progress_end": job_end.get("progress"), "overrides": JOB_OVERRIDES})
+
+
+# ------------------------------------------------------------------------------------------------ results
+def report(args, rec: Recorder, uploads: list[dict], delays: list[float], upload_bytes: int, polls_s: float,
+           uploads_s: float, load_start: tuple, rss: dict, job: dict) -> dict:
+    endpoints = {}
+    for name in sorted(rec.latency):
+        duration = uploads_s if name.startswith("POST") else polls_s
+        endpoints[name] = {"requests": len(rec.latency[name]), "errors": rec.errors(name),
+                           "per_s": round(len(rec.latency[name]) / duration, 1),
+                           "statuses": dict(rec.statuses[name]), "latency_ms": percentiles(rec.latency[name])}
+    ok = [u for u in uploads if u["status"] == 201 and u.get("readable")]
+    return {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "commit": subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True,
+                                 text=True).stdout.strip(),
+        "settings": {"seconds": args.seconds, "clients": args.clients, "uploads": args.uploads,
+                     "upload_mb": args.upload_mb, "sse": args.sse},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "loadavg_start": load_start,
+                    "loadavg_end": os.getloadavg(), "note": args.note},
+        "endpoints": endpoints,
+        "uploads": {"file_mb": round(upload_bytes / MB, 1), "count": len(uploads), "ok": len(ok),
+                    "seconds": round(uploads_s, 1), "total_mb_s": round(len(ok) * upload_bytes / MB / uploads_s, 2),
+                    "each_mb_s": percentiles([u["mb_s"] for u in ok], 1.0),
+                    "send_s": percentiles([u["send_s"] for u in ok], 1.0), "all": uploads},
+        "sse": {"clients": args.sse, "events": len(delays), "delay_ms": percentiles(delays)},
+        "api_rss_mb": rss,
+        "job": job,
+        "problems": dict(rec.problems.most_common()),
+    }
+
+
+def progress(p: dict | None) -> str:
+    return f"{p['phase']} epoch {p['epoch']} step {p['step']}/{p['total']}" if p else "-"
+
+
+def markdown(r: dict) -> str:
+    s, m, u = r["settings"], r["machine"], r["uploads"]
+    load = " / ".join(f"{x:.2f}" for x in m["loadavg_start"])
+    lines = [
+        f"# Service under load ({r['date']}, {r['commit']})", "",
+        f"{s['clients']} clients polling for {s['seconds']:.0f} s, {s['uploads']} clients uploading "
+        f"{u['file_mb']:.0f} MB datasets one after another, {s['sse']} SSE streams of the job's events; one `drop api` "
+        "(uvicorn, one process), one `drop worker` training a `cpu`-preset DROP job, PostgreSQL and Redis on loopback.",
+        "",
+        f"Machine: {m['cpus']} cores, {m['platform']}; load average (1/5/15 min) at start {load}. The clients run on "
+        "the same cores, so their own CPU use is inside these latencies." + (f" {m['note']}" if m["note"] else ""),
+        "",
+        "| endpoint | requests | per s | errors | p50 ms | p95 ms | p99 ms | max ms |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, e in r["endpoints"].items():
+        p = e["latency_ms"]
+        lines.append(f"| `{name}` | {e['requests']} | {e['per_s']} | {e['errors']} | {p['p50']} | {p['p95']} | "
+                     f"{p['p99']} | {p['max']} |")
+    each, send = u["each_mb_s"] or {}, u["send_s"] or {}
+    sse, job, rss = r["sse"], r["job"], r["api_rss_mb"]
+    lines += [
+        "",
+        f"Uploads: {u['ok']} of {u['count']} answered 201 and were then returned by GET; each {u['file_mb']:.0f} MB "
+        f"at {each.get('p50', '-')} MB/s (median; slowest {each.get('min', '-')}, fastest {each.get('max', '-')}), "
+        f"{u['total_mb_s']} MB/s in total over {u['seconds']:.0f} s; sending the body took a median "
+        f"{send.get('p50', '-')} s of each (the rest is validation and saving).",
+        f"SSE: {sse['events']} new events delivered to {sse['clients']} streams, delay from creation to arrival "
+        f"p50 {sse['delay_ms'].get('p50', '-')} ms, p95 {sse['delay_ms'].get('p95', '-')} ms (the server polls "
+        "every 0.5 s).",
+        f"API process RSS: {rss['start']} MB when the load began, peak {rss['peak']} MB (VmHWM).",
+        f"Job: {job['status_end']} at the end; it went from {progress(job['progress_start'])} to "
+        f"{progress(job['progress_end'])} during the load.",
+        "",
+        "Problems: " + ("none." if not r["problems"] else ""),
+    ]
+    lines += [f"- {what}: {n}" for what, n in r["problems"].items()]
+    logged = [f"- {name}: `{line}`" for name, found in r["server_log"].items() for line in found]
+    if logged:
+        lines += ["", "Warnings and errors the server processes logged:", *logged]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=60.0, help="how long the load lasts")
+    parser.add_argument("--clients", type=int, default=50, help="concurrent polling clients")
+    parser.add_argument("--uploads", type=int, default=5, help="concurrent uploading clients")
+    parser.add_argument("--upload-mb", type=float, default=100.0, help="size of each uploaded file (MB)")
+    parser.add_argument("--sse", type=int, default=3, help="clients streaming the job's events")
+    parser.add_argument("--note", default="", help="a sentence about the machine for the markdown (background load)")
+    parser.add_argument("--out", type=Path, default=REPO / "bench/results")
+    args = parser.parse_args()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C or a kill cleans up, even when started in the background
+        signal.signal(sig, signal.default_int_handler)
+
+    with tempfile.TemporaryDirectory(prefix="drop-bench-load-") as tmp:
+        folder = Path(tmp)
+        print(f"making datasets in {folder}", flush=True)
+        train, upload = make_files(folder, args.upload_mb)
+        print("starting PostgreSQL database, API and worker", flush=True)
+        with service(folder, upload.stat().st_size) as (base, token, api, worker):
+            result = asyncio.run(run_load(args, base, token, api, worker, train, upload))
+            result["server_log"] = {name: notable_lines(folder / f"{name}.log") for name in ("api", "worker")}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "service_load.json").write_text(json.dumps(result, indent=2) + "\n")
+    text = markdown(result)
+    (args.out / "service_load.md").write_text(text)
+    print(text)
+    return 1 if result["problems"] else 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        sys.exit("interrupted; the processes, database, Redis keys and temporary files it made are removed")
