@@ -32,8 +32,8 @@ ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
 CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/bench-data"))
 
 
-def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args) -> dict:
-    run_dir = Path(args.runs) / f"{env}-{kind}" / f"{algorithm}-{seed}"
+def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
+    run_dir = runs / f"{env}-{kind}" / f"{algorithm}-{seed}"
     done = run_dir / "result.json"
     if done.exists():
         return json.loads(done.read_text())
@@ -93,16 +93,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="bench/results")
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     args = p.parse_args(argv)
-    if args.jobs > 1:
-        args.set.append("threads=1")
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = out / "paper_table.json"
     same_setting = {"preset": args.preset, "set": sorted(args.set)}
     kept = json.loads(results.read_text()) if results.exists() else {}
-    records = [r for r in kept.get("records", []) if r.get("setting", same_setting) == same_setting]
+    # Runs of other settings stay in the file untouched; only this setting's runs make this table.
+    other_settings = [r for r in kept.get("records", []) if r["setting"] != same_setting]
+    records = [r for r in kept.get("records", []) if r["setting"] == same_setting]
     behaviour = dict(kept.get("behaviour", {}))
+    # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
+    runs = Path(args.runs) / "_".join([args.preset, *same_setting["set"]]).replace("/", "-")
+    if args.jobs > 1:  # a speed setting, not part of the run's identity
+        args.set.append("threads=1")
 
     def key(r: dict) -> tuple:
         return r["env"], r["kind"], r["algorithm"], r["seed"]
@@ -119,14 +123,15 @@ def main(argv: list[str] | None = None) -> int:
 
     def write() -> str:
         ordered = sorted(records, key=key)
-        results.write_text(json.dumps({"behaviour": behaviour, "records": ordered}, indent=2))
-        text = (f"# Table 1 at CPU scale (preset `{args.preset}`{', ' + ' '.join(args.set) if args.set else ''}; "
+        results.write_text(json.dumps({"behaviour": behaviour, "records": other_settings + ordered}, indent=2))
+        overrides = " ".join(same_setting["set"])
+        text = (f"# Table 1 at CPU scale (preset `{args.preset}`{', ' + overrides if overrides else ''}; "
                 f"D4RL normalised scores, mean ± std over n seeds)\n\n" + table(ordered, behaviour, args.algorithms))
         (out / "paper_table.md").write_text(text)
         return text
 
     with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
-        futures = [pool.submit(run_one, *job, args) for job in todo]
+        futures = [pool.submit(run_one, *job, args, runs) for job in todo]
         for future in futures:
             record = future.result()
             records.append({**record, "setting": same_setting})
