@@ -11,6 +11,7 @@ from ..deps import DB, Config, Owner, DatasetCursor, owned_dataset
 from ..ids import new_id
 from ..models import ACTIVE_STATUSES, Dataset, Job
 from ..problems import Problem
+from ..schemas import DatasetOut, Page
 from ..settings import Settings
 from ..storage import dataset_dir, remove_tree, upload_dir
 from ..upload import receive
@@ -25,7 +26,8 @@ def _save(s: Session, row: Dataset, settings: Settings) -> None:
     s.commit()
 
 
-@router.post("", status_code=201, summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
+@router.post("", status_code=201, response_model=DatasetOut,
+             summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
 async def upload_dataset(request: Request, name: str | None = Query(None, max_length=300),
                          owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
     dataset_id = new_id("ds")
@@ -53,7 +55,7 @@ async def upload_dataset(request: Request, name: str | None = Query(None, max_le
     return serialize.dataset(row)
 
 
-@router.get("", summary="List datasets, newest first")
+@router.get("", response_model=Page[DatasetOut], summary="List datasets, newest first")
 def list_datasets(after: DatasetCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner,
                   s: Session = DB) -> dict:
     q = select(Dataset).where(Dataset.owner_id == owner)
@@ -62,7 +64,7 @@ def list_datasets(after: DatasetCursor = None, limit: int = Query(20, ge=1, le=1
     return serialize.fetch_page(s, q.order_by(Dataset.id.desc()), serialize.dataset, limit)
 
 
-@router.get("/{dataset_id}")
+@router.get("/{dataset_id}", response_model=DatasetOut)
 def get_dataset(dataset_id: str, owner: str = Owner, s: Session = DB) -> dict:
     return serialize.dataset(owned_dataset(s, owner, dataset_id))
 

@@ -6,11 +6,12 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import text
 
 from ..problems import problem_response
+from ..schemas import Status
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", summary="The process is up")
+@router.get("/healthz", response_model=Status, summary="The process is up")
 def healthz() -> dict:
     return {"status": "ok"}
 
@@ -30,7 +31,7 @@ def _check(request: Request) -> list[str]:
     return problems
 
 
-@router.get("/readyz", summary="The database and the broker are reachable")
+@router.get("/readyz", response_model=Status, summary="The database and the broker are reachable")
 async def readyz(request: Request):
     problems = await run_in_threadpool(_check, request)
     if problems:

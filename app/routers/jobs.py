@@ -16,6 +16,7 @@ from ..ids import new_id
 from ..jobcreate import JobRequest, build
 from ..models import JOB_STATUSES, Job, JobEvent, utcnow
 from ..problems import Problem
+from ..schemas import JobOut, Page
 from ..settings import Settings
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -34,9 +35,9 @@ def _replay(s: Session, owner: str, key: str, digest: str) -> Job | None:
     return row
 
 
-@router.post("", status_code=201, summary="Create a training job",
+@router.post("", status_code=201, response_model=JobOut, summary="Create a training job",
              responses={200: {"description": "A replay: the job an earlier request with this Idempotency-Key made",
-                              "content": {"application/json": {"schema": {"type": "object"}}}}})
+                              "model": JobOut}})
 def create_job(req: JobRequest, request: Request, response: Response,
                idempotency_key: str | None = Header(None, min_length=1, max_length=200),
                owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
@@ -74,7 +75,7 @@ def create_job(req: JobRequest, request: Request, response: Response,
     return serialize.job(job)
 
 
-@router.get("", summary="List jobs, newest first")
+@router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
 def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUSES)), after: JobCursor = None,
               limit: int = Query(20, ge=1, le=100), owner: str = Owner, s: Session = DB) -> dict:
     q = select(Job).where(Job.owner_id == owner)
@@ -88,14 +89,14 @@ def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUS
     return serialize.fetch_page(s, q.order_by(Job.id.desc()), serialize.job, limit)
 
 
-@router.get("/{job_id}")
+@router.get("/{job_id}", response_model=JobOut)
 def get_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
     return serialize.job(owned_job(s, owner, job_id))
 
 
-@router.post("/{job_id}/cancel", status_code=202, summary="Cancel: a queued job at once, a running one at its next step",
-             responses={200: {"description": "Already cancelled: nothing changed",
-                              "content": {"application/json": {"schema": {"type": "object"}}}}})
+@router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
+             summary="Cancel: a queued job at once, a running one at its next step",
+             responses={200: {"description": "Already cancelled: nothing changed", "model": JobOut}})
 def cancel_job(job_id: str, response: Response, owner: str = Owner, s: Session = DB) -> dict:
     """Safe to repeat: asking again while it stops answers 202 again, and once it is cancelled 200; nothing changes.
     A job that succeeded or failed cannot be cancelled: 409."""

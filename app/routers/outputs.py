@@ -18,6 +18,7 @@ from ..curve import render
 from ..deps import DB, Config, Owner, owned_job
 from ..models import FINAL_STATUSES, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from ..problems import Problem
+from ..schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, Page
 from ..settings import Settings
 from ..storage import job_dir
 
@@ -62,7 +63,9 @@ async def _stream(request: Request, job_id: str, after: int):
             yield ": keep-alive\n\n"
 
 
-@router.get("/events", summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends")
+@router.get("/events", response_model=Page[EventOut],
+            summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends",
+            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}}})
 def job_events(job_id: str, request: Request, after: After = 0, limit: int = Query(100, ge=1, le=1000),
                owner: str = Owner, s: Session = DB):
     owned_job(s, owner, job_id)
@@ -75,7 +78,7 @@ def job_events(job_id: str, request: Request, after: After = 0, limit: int = Que
     return serialize.fetch_page(s, q, serialize.event, limit)
 
 
-@router.get("/metrics", summary="Scalar training metrics, oldest first; filter by name")
+@router.get("/metrics", response_model=Page[MetricOut], summary="Scalar training metrics, oldest first; filter by name")
 def job_metrics(job_id: str, name: str | None = Query(None, max_length=100, pattern=r"^[^\x00]*$"),
                 after: After = 0, limit: int = Query(1000, ge=1, le=10000), owner: str = Owner,
                 s: Session = DB) -> dict:
@@ -86,14 +89,14 @@ def job_metrics(job_id: str, name: str | None = Query(None, max_length=100, patt
     return serialize.fetch_page(s, q.order_by(JobMetric.id), serialize.metric, limit)
 
 
-@router.get("/evaluations", summary="Evaluations in the real env (return and D4RL normalised score)")
+@router.get("/evaluations", response_model=Page[EvaluationOut], summary="Evaluations in the real env (return and D4RL normalised score)")
 def job_evaluations(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
     owned_job(s, owner, job_id)
     rows = s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id))
     return serialize.page([serialize.evaluation(r) for r in rows], False)
 
 
-@router.get("/checkpoints", summary="Checkpoints still on disk (older ones are pruned by the trainer)")
+@router.get("/checkpoints", response_model=Page[CheckpointOut], summary="Checkpoints still on disk (older ones are pruned by the trainer)")
 def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
     owned_job(s, owner, job_id)
     rows = s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == job_id).order_by(JobCheckpoint.id))

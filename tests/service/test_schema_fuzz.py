@@ -106,3 +106,19 @@ def test_an_unusable_last_event_id_streams_from_the_start(fuzzed):
                                headers={"Accept": "text/event-stream", "Last-Event-ID": last}) as r:
                 text = "".join(r.iter_text())
             assert r.status_code == 200 and "event: status" in text and "event: end" in text, text
+
+
+def test_every_json_success_names_its_fields(fuzzed):
+    """A success answered as a bare "object" would let the fuzz test's response check pass on anything."""
+    app, _, _ = fuzzed
+    spec = app.openapi()
+    untyped = []
+    for path, methods in spec["paths"].items():
+        for method, op in methods.items():
+            for code, response in op["responses"].items():
+                schema = response.get("content", {}).get("application/json", {}).get("schema")
+                if code.startswith("2") and schema is not None and "$ref" not in schema:
+                    untyped.append(f"{method.upper()} {path} {code}: {schema}")
+    assert not untyped, untyped
+    job = spec["components"]["schemas"]["JobOut"]
+    assert {"status", "progress", "best_score", "error"} <= set(job["required"])
