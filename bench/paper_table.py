@@ -118,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
             if not path.exists():
                 raise SystemExit(f"{path} is missing: run `make bench-data` first")
             behaviour[f"{env}-{kind}"] = behaviour_score(path)
-            todo += [(path, env, kind, algorithm, seed) for algorithm in args.algorithms for seed in args.seeds
+            # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
+            todo += [(path, env, kind, algorithm, seed) for seed in args.seeds for algorithm in args.algorithms
                      if (env, kind, algorithm, seed) not in {key(r) for r in records}]
 
     def write() -> str:
