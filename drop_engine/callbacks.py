@@ -10,6 +10,10 @@ from typing import Mapping
 
 
 class Callback:
+    def on_start(self, resumed: tuple[int, int] | None) -> None:
+        """Training begins, fresh (None) or from the checkpoint at (epoch, step); anything reported after that
+        checkpoint by an earlier, lost run is superseded by what this run reports."""
+
     def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
         """phase is 'dynamics', 'train' or 'export'; step counts within the phase, out of total."""
 

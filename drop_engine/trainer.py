@@ -274,7 +274,8 @@ class Trainer:
         state = load_latest(self.ckpt_dir, self.device)
         if state is not None:
             self.load_state_dict(state)
-        else:
+        self.cb.on_start((self.epoch, self.step_in_epoch) if state is not None else None)
+        if state is None:
             if not self.train_dynamics():
                 return self._result("stopped")
             self.checkpoint()

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 from typing import Callable, Mapping
 
-from sqlalchemy import select, update
+from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
@@ -28,6 +28,28 @@ class DbCallback(Callback):
 
     def _mine(self):
         return (Job.id == self.job_id) & (Job.attempts == self.attempt) & Job.status.in_(("running", "cancelling"))
+
+    def on_start(self, resumed: tuple[int, int] | None) -> None:
+        """Drop what a lost attempt recorded after the point this one starts from, so the job keeps one continuous
+        metrics and evaluation history. Rows are ordered by their creation time: the lost attempt wrote both the
+        checkpoint's row and the rows after it, with one clock."""
+        with self.sessions.begin() as s:
+            if s.scalar(select(Job.id).where(self._mine())) is None:
+                return
+            since = None
+            if resumed is not None:
+                since = s.scalar(select(func.max(JobCheckpoint.created_at)).where(
+                    JobCheckpoint.job_id == self.job_id, JobCheckpoint.epoch == resumed[0],
+                    JobCheckpoint.step == resumed[1]))
+                if since is None:  # killed between writing the file and recording it: nothing came after it
+                    return
+            for table in (JobMetric, JobEvaluation):
+                stale = delete(table).where(table.job_id == self.job_id)
+                s.execute(stale if since is None else stale.where(table.created_at > since))
+            scores = s.execute(select(JobEvaluation.normalized_score).where(JobEvaluation.job_id == self.job_id)
+                               .order_by(JobEvaluation.epoch)).scalars().all()
+            s.execute(update(Job).where(self._mine()).values(last_score=scores[-1] if scores else None,
+                                                             best_score=max(scores, default=None)))
 
     def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
         now = time.monotonic()

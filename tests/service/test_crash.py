@@ -1,5 +1,6 @@
 """A worker killed mid-job: its heartbeat goes stale, another worker's reaper re-queues the job, and the second
-attempt resumes from the newest checkpoint instead of starting over. Real worker processes, killed with SIGKILL."""
+attempt resumes from the newest checkpoint instead of starting over, with one continuous metrics history. Real
+worker processes, killed with SIGKILL."""
 from __future__ import annotations
 
 import secrets
@@ -56,6 +57,15 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
             assert not any(e["type"] == "progress" and e["data"]["phase"] == "dynamics" for e in after)
             first_epoch = next(e["data"]["epoch"] for e in after if e["type"] == "progress")
             assert 1 <= first_epoch <= killed_at_epoch + 1, "resumed from a checkpoint, not from scratch"
+
+            # One continuous history: what the killed attempt reported after its checkpoint was replaced, not doubled.
+            steps = [m["step"] for m in alice.get(f"/v1/jobs/{job['id']}/metrics",
+                                                  params={"name": "sac/critic_loss", "limit": 1000}).json()["data"]]
+            assert sorted(steps) == list(range(10, 6 * 40 + 1, 10)), steps  # smoke preset: logged every 10 steps
+            evaluations = alice.get(f"/v1/jobs/{job['id']}/evaluations").json()["data"]
+            assert sorted(e["epoch"] for e in evaluations) == [1, 2, 3, 4, 5, 6], evaluations
+            scores = [e["normalized_score"] for e in sorted(evaluations, key=lambda e: e["epoch"])]
+            assert (done["last_score"], done["best_score"]) == (scores[-1], max(scores))
             assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
     finally:
         kill_group(first)
