@@ -66,7 +66,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
     import torch
 
     from .collect import DEFAULT_TRANSITIONS, KINDS, CollectConfig, collect_datasets, summary_table
-    from .online import DEFAULT_STEPS, OnlineConfig
+    from .online import OnlineConfig
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -77,7 +77,7 @@ def cmd_collect(args: argparse.Namespace) -> int:
         return 2
     try:
         online = OnlineConfig(env=args.env, version=args.env_version, seed=args.seed,
-                              steps=args.steps if args.steps is not None else DEFAULT_STEPS,
+                              steps=args.steps,
                               warmup=args.warmup, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
                               medium_return=args.medium_return)
     except (KeyError, ValueError) as exc:
@@ -140,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory; an existing one is resumed")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=None,
-                   help="online SAC env steps, one update each (default 120,000: about 20 min on 2 idle cores)")
+                   help="online SAC env steps, one update each (default: 120,000 for hopper, about 25 min on an idle core; 200,000 for walker2d and halfcheetah)")
     p.add_argument("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, "
                    "medium, expert; medium-expert holds twice this; default 200,000)")
     p.add_argument("--kinds", default=None, help="comma-separated subset of random,medium,medium-replay,expert,"
