@@ -15,7 +15,10 @@ from drop_engine.trainer import Trainer, train
 class Recorder(Callback):
     def __init__(self, stop_after: int | None = None):
         self.metrics, self.evaluations, self.checkpoints, self.phases = [], [], [], set()
-        self.asked, self.stop_after = 0, stop_after
+        self.asked, self.stop_after, self.starts = 0, stop_after, []
+
+    def on_start(self, resumed):
+        self.starts.append(resumed)
 
     def on_progress(self, phase, epoch, step, total):
         self.phases.add(phase)
@@ -88,6 +91,8 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
     result_b = b2.run()
 
     assert result_b.status == "completed"
+    # Each run says where it starts, so a caller can drop what it recorded past that checkpoint.
+    assert (whole.starts, first.starts, second.starts) == ([None], [None], [(b1.epoch, b1.step_in_epoch)])
     for (name, pa), pb in zip(a.sac.state_dict().items(), b2.sac.state_dict().values()):
         assert torch.equal(pa, pb), name
     assert result_a.evaluations == result_b.evaluations
