@@ -21,7 +21,8 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 # D4RL-style benchmark datasets (random, medium, medium-replay, medium-expert) made by `drop collect`, one env after
-# another, into a cache outside the repo: 20 min for hopper on 2 idle cores, about an hour per env on busy ones. Rerunning resumes where it stopped.
+# another, into a cache outside the repo: 20 min for hopper on 2 idle cores; walker2d and halfcheetah took about 40 min
+# each with one core apiece. Rerunning resumes where it stopped.
 BENCH_ENVS ?= hopper walker2d halfcheetah
 bench-data: $(STAMP)
 	out="$${DROP_BENCH_DATA:-$$HOME/.cache/drop-rl/bench-data}"; \
