@@ -22,6 +22,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import build_config
@@ -105,8 +106,6 @@ def main(argv: list[str] | None = None) -> int:
     behaviour = dict(kept.get("behaviour", {}))
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
     runs = Path(args.runs) / "_".join([args.preset, *same_setting["set"]]).replace("/", "-")
-    if args.jobs > 1:  # a speed setting, not part of the run's identity
-        args.set.append("threads=1")
 
     def key(r: dict) -> tuple:
         return r["env"], r["kind"], r["algorithm"], r["seed"]
@@ -131,7 +130,11 @@ def main(argv: list[str] | None = None) -> int:
         (out / "paper_table.md").write_text(text)
         return text
 
-    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+    # Runs side by side get one torch thread each, behaviour cloning included: two threads per run on a machine whose
+    # cores are all taken spin-wait (BC took 5x longer). A speed setting, not part of a run's identity.
+    threads = (1,) if args.jobs > 1 else (torch.get_num_threads(),)
+    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"), initializer=torch.set_num_threads,
+                             initargs=threads) as pool:
         futures = [pool.submit(run_one, *job, args, runs) for job in todo]
         for future in futures:
             record = future.result()
