@@ -132,9 +132,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # Runs side by side get one torch thread each, behaviour cloning included: two threads per run on a machine whose
     # cores are all taken spin-wait (BC took 5x longer). A speed setting, not part of a run's identity.
-    threads = (1,) if args.jobs > 1 else (torch.get_num_threads(),)
-    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"), initializer=torch.set_num_threads,
-                             initargs=threads) as pool:
+    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"),
+                             initializer=torch.set_num_threads if args.jobs > 1 else None, initargs=(1,)) as pool:
         futures = [pool.submit(run_one, *job, args, runs) for job in todo]
         for future in futures:
             record = future.result()

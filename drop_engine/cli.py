@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory; an existing one is resumed")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=None,
-                   help="online SAC env steps, one update each (default: 120,000 for hopper, about 25 min on an idle core; 200,000 for walker2d and halfcheetah)")
+                   help="online SAC env steps, one update each (default: 120,000 for hopper, about 20 min on 2 idle "
+                        "cores; 200,000 for walker2d and halfcheetah, about 40 min on one core)")
     p.add_argument("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, "
                    "medium, expert; medium-expert holds twice this; default 200,000)")
     p.add_argument("--kinds", default=None, help="comma-separated subset of random,medium,medium-replay,expert,"

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+import httpx
 import psycopg
 import pytest
 import redis
@@ -103,6 +104,19 @@ def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: floa
             break
         time.sleep(0.2)
     raise RuntimeError(f"{needle!r} not seen; log:\n{path.read_text(errors='replace')[-4000:]}")
+
+
+def wait_ready(http: httpx.Client, proc: subprocess.Popen, log: Path, timeout: float = 60) -> None:
+    """Poll the server's /readyz until it answers 200; fail with its log if it exits or never does."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if http.get("/readyz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline and proc.poll() is None, log.read_text(errors="replace")[-4000:]
+        time.sleep(0.2)
 
 
 def start_worker(settings: Settings, log: Path) -> subprocess.Popen:

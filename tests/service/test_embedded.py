@@ -12,7 +12,7 @@ import time
 import httpx
 import torch
 
-from .conftest import REPO, free_port
+from .conftest import REPO, free_port, wait_ready
 
 
 class Serve:
@@ -28,15 +28,8 @@ class Serve:
             self.proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--port", str(self.port)],
                                          cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT)
         http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=60)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if http.get("/readyz").status_code == 200:
-                    return http
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline and self.proc.poll() is None, self.log_path.read_text()
-            time.sleep(0.3)
+        wait_ready(http, self.proc, self.log_path)
+        return http
 
     def stop(self, timeout: float = 60) -> int:
         self.proc.send_signal(signal.SIGINT)
