@@ -101,7 +101,7 @@ def bench_threads(data: Dataset, threads: int, device: torch.device, work: Path)
     phase("mlp256_adam_step", mlp_adam_step(device))
     drop = ready_trainer(data, "drop", str(device), work / f"drop-{threads}")
     cfg = drop.cfg
-    phase("sac_update", lambda: drop.sac.update(*drop.sac_batch()))
+    phase("sac_update", drop.sac_update)
     phase("dice_update", lambda: drop.train_dice(1))
     buffer = ReplayBuffer(cfg.rollout.batch_size * cfg.horizon, data.obs_dim, data.act_dim, device)
     starts = drop.real.sample(50_000)[0]

@@ -54,6 +54,9 @@ class SACConfig(_Strict):
     batch_size: int = Field(256, ge=1)
     real_ratio: float = Field(0.05, ge=0, le=1)
     target_entropy: float | None = Field(None, description="default -|A|")
+    bc_weight: float = Field(0.0, ge=0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
+                             "actor minimises (alpha logp - Q)/mean|Q| + w * mean (tanh(mu(s)) - a)^2 on a real batch; "
+                             "0 is plain SAC (the paper)")
 
 
 class RolloutConfig(_Strict):
@@ -69,6 +72,16 @@ class DiceConfig(_Strict):
     batch_size: int = Field(256, ge=1)
     pretrain_steps: int = Field(400, ge=0)
     steps_per_epoch: int = Field(400, ge=0)
+    positive: bool = Field(False, description="tau = softplus(net), never negative; False is the paper's linear tau")
+    discount: float | Literal["sac", "horizon"] = Field(
+        "sac", description="the occupancy's discount: 'sac' uses SAC's gamma (the paper); 'horizon' uses (h-1)/(h+1), "
+                           "whose mean step (h-1)/2 is that of the h-step model rollouts the penalty is applied to")
+
+    @model_validator(mode="after")
+    def _check(self) -> "DiceConfig":
+        if isinstance(self.discount, float) and not 0 <= self.discount < 1:
+            raise ValueError(f"discount must be in [0, 1), got {self.discount}")
+        return self
 
 
 class PenaltyConfig(_Strict):
@@ -113,6 +126,14 @@ class TrainConfig(_Strict):
     def horizon(self) -> int:
         return self.penalty.mopo_horizon if self.algorithm == "mopo" else self.rollout.horizon
 
+    @property
+    def dice_discount(self) -> float:
+        if self.dice.discount == "sac":
+            return self.sac.gamma
+        if self.dice.discount == "horizon":
+            return (self.horizon - 1) / (self.horizon + 1)
+        return self.dice.discount
+
 
 # Per-dataset settings of the official code: h, eta, g, clip, lambda, dice lr, dice steps, MOPO h, MOPO lambda.
 _LOG10, _LOG50 = ("log", (0.01, 10.0)), ("log", (0.01, 50.0))
@@ -146,17 +167,26 @@ def dataset_settings(env: str, task: str | None) -> dict[str, Any]:
     }
 
 
-def preset_settings(preset: str, env: str) -> dict[str, Any]:
-    """Sizes only: how long and how wide, never which penalty."""
+# The cpu preset's behaviour-term weight per dataset kind (bench/QUALITY.md): strong where the data is one competent
+# policy, weak where it is a mix of many (medium-replay) or no policy at all (random), so the model can lift the
+# policy above the data there.
+CPU_BC_WEIGHT = {"random": 0.1, "medium": 0.4, "medium-replay": 0.1, "medium-expert": 0.4}
+
+
+def preset_settings(preset: str, env: str, task: str | None = None) -> dict[str, Any]:
+    """Sizes, and for `cpu` the stabilisers of bench/QUALITY.md, applied alike to DROP, MOPO and MBPO."""
     if preset == "paper":
         return {"epochs": PAPER_EPOCHS.get(env, 1000), "sac": {"target_entropy": -3.0}}
     if preset == "cpu":
-        # About 30 min for hopper DROP on 2 idle cores: at most 5 min of dynamics, then 90 epochs of ~16 s each
-        # (1000 SAC updates, the DICE steps, 10,000 x h rollouts; bench/results/engine_speed.md).
+        # About 30 min for hopper DROP on 2 idle cores (bench/results/engine_speed.md); dynamics are bounded by
+        # epochs and early stopping, never by the clock, so a seed gives the same model on a busy machine.
         return {
-            "epochs": 90, "eval_every": 10, "eval_episodes": 5, "checkpoint_every": 10,
-            "dynamics": {"max_epochs": 200, "max_seconds": 300.0},
+            "epochs": 90, "eval_every": 10, "eval_episodes": 10, "checkpoint_every": 10,
+            "dynamics": {"max_epochs": 60},
             "rollout": {"batch_size": 10_000},
+            "sac": {"bc_weight": CPU_BC_WEIGHT.get(task or "medium", CPU_BC_WEIGHT["medium"])},
+            "dice": {"positive": True, "discount": "horizon"},
+            "penalty": {"bonus": False},
         }
     if preset == "smoke":
         return {
@@ -205,7 +235,7 @@ def build_config(
 ) -> TrainConfig:
     """Compose dataset settings, preset and overrides into one validated config."""
     base = {"algorithm": algorithm, "env": env, "preset": preset, "task": task, "seed": seed, "device": device}
-    layers = [dataset_settings(env, task), preset_settings(preset, env), _nest(overrides or {})]
+    layers = [dataset_settings(env, task), preset_settings(preset, env, task), _nest(overrides or {})]
     merged: dict = base
     for layer in layers:
         merged = _merge(merged, layer)

@@ -6,7 +6,10 @@ their optimiser ascends while tau's descends.
 """
 from __future__ import annotations
 
+import math
+
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .config import DiceConfig
@@ -16,14 +19,14 @@ from .nn import EnsembleMLP, Standardize, adam
 class GradientDice(nn.Module):
     def __init__(self, members: int, obs_dim: int, act_dim: int, cfg: DiceConfig, gamma: float):
         super().__init__()
-        self.members, self.gamma, self.lam = members, gamma, cfg.lam
+        self.members, self.gamma, self.lam, self.positive = members, gamma, cfg.lam, cfg.positive
         self.norm = Standardize(obs_dim)
         in_dim = obs_dim + act_dim
         self.tau_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
         self.f_net = EnsembleMLP(members, in_dim, cfg.hidden, 1)
         # Start at tau = 1, the ratio of identical distributions, so an estimator that has not trained yet
-        # neither penalises nor rewards anything.
-        nn.init.constant_(self.tau_net.out.bias, 1.0)
+        # neither penalises nor rewards anything (softplus(log(e - 1)) = 1).
+        nn.init.constant_(self.tau_net.out.bias, math.log(math.e - 1) if cfg.positive else 1.0)
         self.nu = nn.Parameter(torch.zeros(members, 1))
         self.tau_optim = adam(self.tau_net.parameters(), cfg.lr)
         self.f_optim = adam([*self.f_net.parameters(), self.nu], cfg.lr)
@@ -31,14 +34,22 @@ class GradientDice(nn.Module):
     def _input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return torch.cat([self.norm(obs), act], -1)
 
+    def _tau(self, x: torch.Tensor) -> torch.Tensor:
+        # A ratio of densities is never negative; the paper's linear output can be, and a negative tau turns the log
+        # penalty into its clip floor everywhere. softplus keeps the estimator in the ratio's range.
+        raw = self.tau_net(x).squeeze(-1)
+        return F.softplus(raw) if self.positive else raw
+
     def tau(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """Ratio estimates, (members, N); inputs (N, d) shared or (members, N, d)."""
-        return self.tau_net(self._input(obs, act)).squeeze(-1)
+        return self._tau(self._input(obs, act))
 
-    def objective(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> torch.Tensor:
-        """J_k per member, (members,). next_obs/next_act are per member: (members, N, d)."""
+    def objective(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> tuple[torch.Tensor, torch.Tensor]:
+        """J_k per member, (members,), and tau at the data's (s, a), (members, N).
+
+        next_obs/next_act are per member: (members, N, d)."""
         x, x_next, x0 = self._input(obs, act), self._input(next_obs, next_act), self._input(obs0, act0)
-        tau = self.tau_net(x).squeeze(-1)
+        tau = self._tau(x)
         # f at all three inputs in one pass: three small batched matmuls per layer become one larger one.
         shared = (self.members, -1, -1)
         f_all = self.f_net(torch.cat([x.expand(shared), x_next, x0.expand(shared)], 1)).squeeze(-1)
@@ -51,10 +62,11 @@ class GradientDice(nn.Module):
             - 0.5 * f.pow(2).mean(1)
             + self.lam * ((nu * tau).mean(1) - nu.squeeze(1) - 0.5 * nu.squeeze(1).pow(2))
         )
-        return j
+        return j, tau
 
     def update(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> dict[str, torch.Tensor]:
-        j = self.objective(obs, act, next_obs, next_act, obs0, act0, not_done)
+        """One simultaneous step of both players; also reports tau on the data, whose mean must stay near 1."""
+        j, tau = self.objective(obs, act, next_obs, next_act, obs0, act0, not_done)
         self.tau_optim.zero_grad(set_to_none=True)
         self.f_optim.zero_grad(set_to_none=True)
         j.sum().backward()
@@ -64,7 +76,9 @@ class GradientDice(nn.Module):
                     p.grad.neg_()
         self.tau_optim.step()
         self.f_optim.step()
-        return {"dice/objective": j.detach().mean()}
+        tau = tau.detach()
+        return {"dice/objective": j.detach().mean(), "dice/tau_data_mean": tau.mean(),
+                "dice/tau_data_std": tau.std(1).mean(), "dice/tau_data_negative": (tau < 0).float().mean()}
 
     def optim_state(self) -> dict:
         return {"tau_optim": self.tau_optim.state_dict(), "f_optim": self.f_optim.state_dict()}

@@ -118,9 +118,13 @@ def model_rollout(
         obs = next_obs[keep]
         if obs.shape[0] == 0:
             break
+    pen_all, rew_all = torch.cat(pens), torch.cat(rews)
     stats = {
-        "rollout/penalty_mean": torch.cat(pens).mean(),
-        "rollout/reward_mean": torch.cat(rews).mean(),
+        "rollout/penalty_mean": pen_all.mean(),
+        "rollout/penalty_std": pen_all.std(),
+        "rollout/penalty_max": pen_all.max(),
+        "rollout/penalty_share": pen_all.abs().mean() / rew_all.abs().mean().clamp_min(1e-8),
+        "rollout/reward_mean": rew_all.mean(),
         "rollout/length_mean": torch.tensor(added / len(starts)),
         "rollout/model_buffer_size": torch.tensor(float(len(buffer))),
     }

@@ -70,8 +70,12 @@ class SAC(nn.Module):
         for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
             module.set(mean, std)
 
-    def update(self, obs, act, rew, next_obs, done) -> dict[str, torch.Tensor]:
-        """One SAC step; returns detached scalars so callers decide when to synchronise."""
+    def update(self, obs, act, rew, next_obs, done, real: tuple[torch.Tensor, torch.Tensor] | None = None,
+               n_real: int = 0) -> dict[str, torch.Tensor]:
+        """One SAC step; returns detached scalars so callers decide when to synchronise.
+
+        `real` is a batch of offline (s, a) for the behaviour term (used when `bc_weight` > 0); the first `n_real`
+        rows of the batch are real transitions, so Q on data and on model rows can be reported apart."""
         cfg = self.cfg
         alpha = self.log_alpha.exp().detach()
         with torch.no_grad():
@@ -88,7 +92,7 @@ class SAC(nn.Module):
         self.critic.requires_grad_(False)
         q_new = self.critic(obs, new_act).min(0).values
         self.critic.requires_grad_(True)
-        actor_loss = (alpha * logp - q_new).mean()
+        actor_loss, extra = self._actor_loss(alpha, logp, q_new, real)
         self.actor_optim.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_optim.step()
@@ -99,14 +103,31 @@ class SAC(nn.Module):
         self.alpha_optim.step()
 
         soft_update(self.critic_target, self.critic, cfg.tau)
-        return {
+        q = q.detach()
+        metrics = {
             "sac/critic_loss": critic_loss.detach(),
             "sac/actor_loss": actor_loss.detach(),
             "sac/alpha_loss": alpha_loss.detach(),
             "sac/alpha": alpha,
-            "sac/q_mean": q.detach().mean(),
+            "sac/q_mean": q.mean(),
             "sac/entropy": -logp.detach().mean(),
+            **extra,
         }
+        if 0 < n_real < q.shape[1]:
+            metrics["sac/q_data"] = q[:, :n_real].mean()
+            metrics["sac/q_model"] = q[:, n_real:].mean()
+        return metrics
+
+    def _actor_loss(self, alpha, logp, q_new, real) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """SAC's actor loss, or with `bc_weight` > 0 TD3+BC's form: the Q term scaled by 1/mean|Q| so the behaviour
+        term's weight means the same at any reward scale, plus the squared distance to the data's actions."""
+        loss = (alpha * logp - q_new).mean()
+        if self.cfg.bc_weight == 0 or real is None:
+            return loss, {}
+        real_obs, real_act = real
+        bc = (torch.tanh(self.actor(real_obs)[0]) - real_act).pow(2).mean()
+        scaled = loss / q_new.detach().abs().mean().clamp_min(1e-6)
+        return scaled + self.cfg.bc_weight * bc, {"sac/bc_mse": bc.detach()}
 
     def optim_state(self) -> dict:
         return {name: getattr(self, name).state_dict() for name in ("actor_optim", "critic_optim", "alpha_optim")}

@@ -20,6 +20,7 @@ from .callbacks import Callback
 from .checkpoint import load_latest, save_checkpoint
 from .config import TrainConfig
 from .data import Dataset, Normalizer, load_dataset
+from .diagnostics import exploitation_stats
 from .dice import GradientDice
 from .dynamics import DynamicsReport, GaussianEnsemble, train_dynamics
 from .envs import get_env
@@ -81,7 +82,7 @@ class Trainer:
         self.sac.set_obs_normalizer(norm.mean, norm.std)
         self.dice = None
         if config.algorithm == "drop":
-            self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice, config.sac.gamma).to(dev)
+            self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice, config.dice_discount).to(dev)
             self.dice.norm.set(norm.mean, norm.std)
         self.termination = self.spec.termination
         self.successors: torch.Tensor | None = None  # (elites, N, obs_dim), filled on first DICE use
@@ -191,14 +192,20 @@ class Trainer:
             out = dice.update(obs, act, next_obs, next_act, obs0, act0, not_done)
         return out
 
-    def sac_batch(self) -> tuple[torch.Tensor, ...]:
+    def sac_batch(self) -> tuple[tuple[torch.Tensor, ...], int]:
+        """A batch of real rows then model rows, and how many are real."""
         n = self.cfg.sac.batch_size
         n_real = int(round(n * self.cfg.sac.real_ratio)) if len(self.model_buffer) else n
         real = self.real.sample(n_real)
         if n_real == n:
-            return real
+            return real, n_real
         fake = self.model_buffer.sample(n - n_real)
-        return tuple(torch.cat([a, b]) for a, b in zip(real, fake))
+        return tuple(torch.cat([a, b]) for a, b in zip(real, fake)), n_real
+
+    def sac_update(self) -> dict[str, torch.Tensor]:
+        batch, n_real = self.sac_batch()
+        behaviour = self.real.sample(self.cfg.sac.batch_size)[:2] if self.cfg.sac.bc_weight > 0 else None
+        return self.sac.update(*batch, real=behaviour, n_real=n_real)
 
     def _accumulate(self, metrics: dict[str, torch.Tensor]) -> None:
         for k, v in metrics.items():
@@ -245,6 +252,7 @@ class Trainer:
         starts = self.real.sample(cfg.rollout.batch_size)[0]
         stats.update(self._timed("rollout", model_rollout, self.sac.actor, self.model, self.dice, starts, cfg.horizon,
                                  cfg.algorithm, cfg.penalty, self.termination, self.model_buffer))
+        stats.update(exploitation_stats(self.model, self.real, self.model_buffer))
         values = torch.stack([v.float() for v in stats.values()]).cpu().tolist()
         self.cb.on_metrics(dict(zip(stats, values)), self.global_step)
 
@@ -257,7 +265,7 @@ class Trainer:
             while self.step_in_epoch < cfg.steps_per_epoch:
                 if self.cb.should_stop():
                     return False
-                self._accumulate(self.sac.update(*self.sac_batch()))
+                self._accumulate(self.sac_update())
                 self.step_in_epoch += 1
                 self.global_step += 1
                 if self.global_step % cfg.log_every == 0:

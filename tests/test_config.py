@@ -37,3 +37,23 @@ def test_unknown_algorithm_and_preset():
         build_config("cql", "hopper", "cpu")
     with pytest.raises(ConfigError, match="unknown preset 'huge'"):
         build_config("drop", "hopper", "huge")
+
+
+def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
+    paper = build_config("drop", "hopper", "paper", task="medium")
+    assert paper.sac.bc_weight == 0 and not paper.dice.positive and paper.penalty.bonus
+    assert paper.dice_discount == paper.sac.gamma
+    cpu = {task: build_config(algo, "hopper", "cpu", task=task)
+           for algo in ("drop", "mopo", "mbpo") for task in ("medium", "medium-replay")}
+    assert cpu["medium"].sac.bc_weight > cpu["medium-replay"].sac.bc_weight > 0
+    drop = build_config("drop", "hopper", "cpu", task="medium")
+    assert drop.dice.positive and not drop.penalty.bonus and drop.eval_episodes == 10
+    assert drop.dynamics.max_seconds is None and drop.dynamics.max_epochs
+    assert drop.dice_discount == pytest.approx(4 / 6)  # h = 5: mean step 2, as uniform over the 5 rollout steps
+    assert build_config("drop", "walker2d", "cpu", task="medium-replay").dice_discount == 0.0  # h = 1
+
+
+def test_dice_discount_override_is_checked():
+    assert build_config("drop", "hopper", "cpu", overrides={"dice.discount": 0.5}).dice_discount == 0.5
+    with pytest.raises(ConfigError, match="discount must be in"):
+        build_config("drop", "hopper", "cpu", overrides={"dice.discount": 1.5})

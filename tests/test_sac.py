@@ -1,4 +1,5 @@
 """SAC must learn a one-step continuous task whose optimum is known: a*(s) = 0.5 s."""
+import pytest
 import torch
 
 from drop_engine.config import SACConfig
@@ -41,3 +42,21 @@ def test_behaviour_cloning_recovers_a_deterministic_policy(hopper_dataset):
     with torch.no_grad():
         pred = actor.act(torch.as_tensor(obs), deterministic=True).numpy()
     assert abs(pred - target).mean() < 0.05
+
+
+@pytest.mark.parametrize("bc_weight, expected", [(0.0, 0.5), (10.0, -0.5)])
+def test_behaviour_term_holds_the_actor_at_the_data(bc_weight, expected):
+    """The reward's optimum is a = 0.5, the data's action is -0.5: a strong behaviour term wins, none lets Q win."""
+    torch.manual_seed(0)
+    sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=bc_weight))
+    data_act = torch.full((128, 1), -0.5)
+    for _ in range(1500):
+        s = torch.rand(128, 1) * 2 - 1
+        a = torch.rand(128, 1) * 2 - 1
+        r = -(a[:, 0] - 0.5).pow(2) * 10
+        metrics = sac.update(s, a, r, s, torch.ones(128), real=(s, data_act), n_real=64)
+    with torch.no_grad():
+        act = sac.actor.act(torch.linspace(-1, 1, 11)[:, None], deterministic=True)
+    assert (act - expected).abs().max().item() < 0.15
+    assert {"sac/q_data", "sac/q_model"} <= set(metrics)
+    assert ("sac/bc_mse" in metrics) == (bc_weight > 0)

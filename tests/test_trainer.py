@@ -53,9 +53,12 @@ def test_smoke_run_writes_checkpoints_metrics_and_policy(tmp_path, hopper_datase
     assert list_checkpoints(tmp_path / "checkpoints") and all(p.exists() for p in rec.checkpoints[-1:])
     names = {name for _, m in rec.metrics for name in m}
     expected = {"sac/critic_loss", "sac/actor_loss", "sac/alpha", "sac/q_mean", "rollout/penalty_mean",
-                "rollout/model_buffer_size", "dynamics/holdout_mse", "time/sac", "time/rollout", "time/epochs"}
+                "rollout/model_buffer_size", "dynamics/holdout_mse", "time/sac", "time/rollout", "time/epochs",
+                "sac/q_data", "sac/q_model", "diag/uncertainty_data", "diag/uncertainty_model", "diag/reward_data",
+                "diag/reward_model", "rollout/penalty_share"}
     if algorithm == "drop":
-        expected |= {"dice/objective", "dice/tau_mean", "dice/tau_min", "dice/tau_max", "time/dice"}
+        expected |= {"dice/objective", "dice/tau_mean", "dice/tau_min", "dice/tau_max", "time/dice",
+                     "dice/tau_data_mean", "dice/tau_data_std"}
     assert expected <= names
     penalties = [m["rollout/penalty_mean"] for _, m in rec.metrics if "rollout/penalty_mean" in m]
     assert (all(p == 0 for p in penalties)) is (algorithm == "mbpo")
