@@ -31,6 +31,14 @@ from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
 CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/bench-data"))
+# Bumped when a preset's meaning changes, so runs of the old meaning are kept apart and never counted as the new.
+# 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
+REVISION = 2
+FINAL_OF = 3  # "final" is the mean of the last 3 evaluations: one flipped episode should not decide a row
+
+
+def final_score(evaluations: list[dict]) -> float:
+    return float(np.mean([e["normalized_score"] for e in evaluations[-FINAL_OF:]]))
 
 
 def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
@@ -50,7 +58,8 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
         result = train(data_path, cfg, run_dir)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
-        record = {"final": result.last_score, "best": result.best_score, "evaluations": result.evaluations}
+        record = {"final": final_score(result.evaluations), "best": result.best_score,
+                  "evaluations": result.evaluations, "dynamics": result.dynamics}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed,
                    "seconds": time.perf_counter() - start})
     done.write_text(json.dumps(record, indent=2))
@@ -75,6 +84,24 @@ def table(records: list[dict], behaviour: dict[str, float | None], algorithms: l
             runs = [r for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
             row += [cell([r["final"] for r in runs]), cell([r["best"] for r in runs])]
         lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n" + targets(records, list(behaviour))
+
+
+def targets(records: list[dict], datasets: list[str]) -> str:
+    """The issue's bars: DROP's final against each baseline's, dataset by dataset, and DROP's runs against collapse."""
+    def mean_final(dataset: str, algo: str) -> float | None:
+        scores = [r["final"] for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
+        return float(np.mean(scores)) if scores else None
+
+    lines = ["", "| DROP's final at least | datasets with both | met |", "|---|---|---|"]
+    for algo in ("bc", "mopo", "mbpo"):
+        pairs = [(mean_final(d, "drop"), mean_final(d, algo)) for d in datasets]
+        pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
+        lines.append(f"| {algo.upper()}'s | {len(pairs)} | {sum(a >= b for a, b in pairs)} |")
+    drop = [r for r in records if r["algorithm"] == "drop"]
+    held = [r for r in drop if r["best"] is not None and r["final"] >= 0.8 * r["best"]]
+    lines += ["", f"No collapse (final at least 0.8 of best): {len(held)} of {len(drop)} DROP runs; final is the mean of "
+                  f"the last {FINAL_OF} evaluations."]
     return "\n".join(lines) + "\n"
 
 
@@ -98,14 +125,14 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = out / "paper_table.json"
-    same_setting = {"preset": args.preset, "set": sorted(args.set)}
+    same_setting = {"preset": args.preset, "set": sorted(args.set), "revision": REVISION}
     kept = json.loads(results.read_text()) if results.exists() else {}
     # Runs of other settings stay in the file untouched; only this setting's runs make this table.
     other_settings = [r for r in kept.get("records", []) if r["setting"] != same_setting]
     records = [r for r in kept.get("records", []) if r["setting"] == same_setting]
     behaviour = dict(kept.get("behaviour", {}))
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
-    runs = Path(args.runs) / "_".join([args.preset, *same_setting["set"]]).replace("/", "-")
+    runs = Path(args.runs) / "_".join([f"{args.preset}-r{REVISION}", *same_setting["set"]]).replace("/", "-")
 
     def key(r: dict) -> tuple:
         return r["env"], r["kind"], r["algorithm"], r["seed"]
