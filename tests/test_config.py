@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import ConfigError, build_config
+from drop_engine.config import PRESETS, ConfigError, build_config
 
 
 def test_paper_preset_uses_official_dataset_settings():
@@ -37,3 +37,11 @@ def test_unknown_algorithm_and_preset():
         build_config("cql", "hopper", "cpu")
     with pytest.raises(ConfigError, match="unknown preset 'huge'"):
         build_config("drop", "hopper", "huge")
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_presets_never_cap_dynamics_by_wall_clock(preset):
+    """A time cap would make the model, and so the whole run, depend on how busy the machine is."""
+    dynamics = build_config("drop", "hopper", preset).dynamics
+    assert dynamics.max_seconds is None
+    assert dynamics.max_epochs is not None or preset == "paper"
