@@ -21,7 +21,7 @@ from .checkpoint import load_latest, save_checkpoint
 from .config import TrainConfig
 from .data import Dataset, Normalizer, load_dataset
 from .dice import GradientDice
-from .dynamics import DynamicsReport, GaussianEnsemble, train_dynamics
+from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from .envs import get_env
 from .evaluate import evaluate
 from .export import export_policy
@@ -76,7 +76,7 @@ class Trainer:
             next_obs=t(self.data.next_observations), done=t(self.data.terminals.astype(np.float32)),
         )
         norm = Normalizer.fit(self.data.observations) if config.normalize_obs else Normalizer.identity(obs_dim)
-        self.model = GaussianEnsemble(obs_dim, act_dim, config.dynamics).to(dev)
+        self.model = build_ensemble(obs_dim, act_dim, config.dynamics, config.seed, dev)
         self.sac = SAC(obs_dim, act_dim, config.sac).to(dev)
         self.sac.set_obs_normalizer(norm.mean, norm.std)
         self.dice = None
@@ -156,7 +156,7 @@ class Trainer:
             return self.cb.should_stop()
 
         start = time.perf_counter()
-        report = train_dynamics(self.model, self.data, self.cfg.dynamics, self.rng, self.device, on_epoch)
+        report = train_dynamics(self.model, self.data, self.cfg.dynamics, dynamics_rng(self.cfg.seed), self.device, on_epoch)
         self.timings["dynamics"] += time.perf_counter() - start
         if report.stopped_by == "cancelled":
             return False
