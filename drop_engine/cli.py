@@ -45,7 +45,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         bar.close()
     summary = result.to_dict()
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
-    shown = {k: summary[k] for k in ("status", "epochs", "last_return", "last_score", "best_score", "policy", "timings")}
+    keys = ("status", "epochs", "last_return", "last_score", "best_score", "policy", "timings")
+    shown = {k: summary[k] for k in keys}
     if summary["dynamics"]:
         shown["dynamics_from_cache"] = summary["dynamics"]["from_cache"]
     print(json.dumps(shown, indent=2))

@@ -46,7 +46,7 @@ class TrainResult:
     best_score: float | None = None
     evaluations: list[dict] = field(default_factory=list)
     policy: dict[str, str] | None = None
-    dynamics: dict | None = None  # the DynamicsReport plus where the model came from (cache_key, from_cache, cache_path)
+    dynamics: dict | None = None  # the DynamicsReport, and where the model came from: cache_key, from_cache, cache_path
     timings: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:

@@ -108,7 +108,10 @@ def test_cancelled_training_is_not_stored(tmp_path, hopper_dataset):
     cache = ModelCache(tmp_path)
     key = model_key(hopper_dataset, TINY, 0)
     model = build_ensemble(hopper_dataset.obs_dim, hopper_dataset.act_dim, TINY, 0, CPU)
-    fit = lambda: train_dynamics(model, hopper_dataset, TINY, dynamics_rng(0), CPU, lambda epoch, hold: True)  # noqa: E731
+
+    def fit() -> DynamicsReport:
+        return train_dynamics(model, hopper_dataset, TINY, dynamics_rng(0), CPU, lambda epoch, holdout: True)
+
     report, from_cache = cache.fetch_or_train(key, model, fit, lambda: False)
     assert report.stopped_by == "cancelled" and not from_cache
     assert not cache.path(key).exists()
