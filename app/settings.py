@@ -11,7 +11,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore")
 
-    data_dir: Path = Field(Path("data"), description="datasets, job runs, broker folders, SQLite file")
+    data_dir: Path = Field(Path("data"), description="datasets, job runs, trained dynamics models, broker folders, "
+                                                "SQLite file")
     database_url: str | None = Field(None, description="default: sqlite:///<data_dir>/drop.db")
     broker_url: str | None = Field(None, description="default: Celery filesystem transport under data_dir")
     queue: str = "drop-jobs"
@@ -45,7 +46,7 @@ class Settings(BaseSettings):
         return self.celery_broker_url.startswith("filesystem://")
 
     def ensure_dirs(self) -> None:
-        for sub in ("datasets", "jobs", "uploads", "broker/queue", "broker/processed"):
+        for sub in ("datasets", "jobs", "models", "uploads", "broker/queue", "broker/processed"):
             (self.data_dir / sub).mkdir(parents=True, exist_ok=True)
 
 

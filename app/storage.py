@@ -23,6 +23,11 @@ def job_dir(settings: Settings, job_id: str) -> Path:
     return settings.data_dir / "jobs" / _id(job_id, "job")
 
 
+def model_cache_dir(settings: Settings) -> Path:
+    """Trained dynamics ensembles, shared by every job (and owner) training on the same data with the same seed."""
+    return settings.data_dir / "models"
+
+
 def upload_dir(settings: Settings) -> Path:
     path = settings.data_dir / "uploads"
     path.mkdir(parents=True, exist_ok=True)

@@ -48,6 +48,10 @@ class ProgressBar(Callback):
         self._bar.n = step
         self._bar.refresh()
 
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        if metrics.get("dynamics/from_cache") and self._bar is not None:
+            self._bar.set_description("dynamics (from the model cache)")
+
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         if self._bar is not None:
             self._bar.set_postfix(epoch=epoch, ret=f"{mean_return:.0f}", score=f"{normalized_score:.1f}")

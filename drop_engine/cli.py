@@ -8,6 +8,8 @@ from pathlib import Path
 
 from .config import PRESETS, ConfigError, build_config
 
+DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
+
 
 def _parse_override(text: str) -> tuple[str, object]:
     """KEY=VALUE with VALUE parsed as JSON when it is JSON (numbers, lists, booleans), else kept as a string."""
@@ -35,7 +37,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         return 2
     bar = ProgressBar()
     try:
-        result = train(args.dataset, config, args.out, bar)
+        result = train(args.dataset, config, args.out, bar, None if args.no_model_cache else args.model_cache)
     except DatasetError as exc:
         print(f"drop train: {args.dataset}: {exc}", file=sys.stderr)
         return 2
@@ -43,8 +45,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         bar.close()
     summary = result.to_dict()
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps({k: summary[k] for k in ("status", "epochs", "last_return", "last_score", "best_score", "policy",
-                                              "timings")}, indent=2))
+    keys = ("status", "epochs", "last_return", "last_score", "best_score", "policy", "timings")
+    shown = {k: summary[k] for k in keys}
+    if summary["dynamics"]:
+        shown["dynamics_from_cache"] = summary["dynamics"]["from_cache"]
+    print(json.dumps(shown, indent=2))
     return 0 if result.status == "completed" else 1
 
 
@@ -125,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
                    help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
     p.add_argument("--out", required=True, help="run directory (checkpoints, policy); an existing one is resumed")
+    p.add_argument("--model-cache", default=DEFAULT_MODEL_CACHE, metavar="DIR",
+                   help="trained dynamics ensembles shared between runs, by dataset, dynamics config and seed "
+                        f"(default {DEFAULT_MODEL_CACHE})")
+    p.add_argument("--no-model-cache", action="store_true", help="always train the dynamics ensemble, store nothing")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="evaluate an exported policy in the real env")

@@ -34,7 +34,8 @@ class DynamicsConfig(_Strict):
     max_holdout: int = Field(1000, ge=1)
     patience: int = Field(5, ge=1, description="epochs with no member improving by >1% before stopping")
     max_epochs: int | None = Field(None, ge=1)
-    max_seconds: float | None = Field(None, gt=0)
+    max_seconds: float | None = Field(None, gt=0, description="wall-clock cap; makes the model, and so the run, "
+                                      "depend on how busy the machine is (no preset sets it)")
     weight_decay: tuple[float, ...] = (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4)
 
     @model_validator(mode="after")
@@ -178,8 +179,8 @@ def preset_settings(preset: str, env: str, task: str | None = None) -> dict[str,
     if preset == "paper":
         return {"epochs": PAPER_EPOCHS.get(env, 1000), "sac": {"target_entropy": -3.0}}
     if preset == "cpu":
-        # About 30 min for hopper DROP on 2 idle cores (bench/results/engine_speed.md); dynamics are bounded by
-        # epochs and early stopping, never by the clock, so a seed gives the same model on a busy machine.
+        # Dynamics bounded by epochs and early stopping, never by the clock, so a seed gives the same model on a busy
+        # machine; then 90 epochs of 1000 SAC updates, the DICE steps and 10,000 x h rollouts (bench/QUALITY.md).
         return {
             "epochs": 90, "eval_every": 10, "eval_episodes": 10, "checkpoint_every": 10,
             "dynamics": {"max_epochs": 60},

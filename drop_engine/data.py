@@ -5,8 +5,10 @@ service shows that message to the person who uploaded the file.
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +51,17 @@ class Dataset:
     def episodes(self) -> int:
         ends = np.logical_or(self.terminals, self.timeouts)
         return int(ends.sum()) + int(len(self) > 0 and not ends[-1])
+
+    @cached_property
+    def content_hash(self) -> str:
+        """sha256 of the arrays a trained model depends on (names, dtypes, shapes and bytes); computed once, as the
+        arrays are not changed after loading."""
+        digest = hashlib.sha256()
+        for name in ("observations", "actions", "rewards", "next_observations", "terminals"):
+            array = np.ascontiguousarray(getattr(self, name))
+            digest.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
+            digest.update(memoryview(array).cast("B"))
+        return digest.hexdigest()
 
     def episode_returns(self) -> np.ndarray:
         ends = np.flatnonzero(np.logical_or(self.terminals, self.timeouts))

@@ -82,6 +82,20 @@ class GaussianEnsemble(nn.Module):
         return (mean - target).pow(2).mean((1, 2))
 
 
+def build_ensemble(obs_dim: int, act_dim: int, cfg: DynamicsConfig, seed: int,
+                   device: torch.device) -> GaussianEnsemble:
+    """Initial weights from `seed` alone, drawn in a fork of the CPU generator: the run's torch stream is left where
+    it was, so it is the same whether this ensemble is then trained or replaced by a cached one."""
+    with torch.random.fork_rng(devices=[]):
+        torch.default_generator.manual_seed(seed)
+        return GaussianEnsemble(obs_dim, act_dim, cfg).to(device)
+
+
+def dynamics_rng(seed: int) -> np.random.Generator:
+    """The ensemble's own number stream (splits, bootstraps, shuffles), apart from the run's."""
+    return np.random.default_rng([seed, 1])
+
+
 @dataclass
 class DynamicsReport:
     epochs: int

@@ -1,5 +1,8 @@
 """Algorithm 1 of DROP, with MOPO and MBPO as penalties in the same loop; checkpoints and exact resume.
 
+First the dynamics ensemble is trained, or fetched from a model cache shared between runs (`model_cache.py`); it has
+RNG streams of its own, so the rest of the run draws the same numbers either way.
+
 Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0), roll the policy out from
 `rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
 mixing real and model transitions, then evaluate every `eval_every` epochs. The whole state, RNGs included, is
@@ -22,10 +25,11 @@ from .config import TrainConfig
 from .data import Dataset, Normalizer, load_dataset
 from .diagnostics import exploitation_stats
 from .dice import GradientDice
-from .dynamics import DynamicsReport, GaussianEnsemble, train_dynamics
+from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from .envs import get_env
 from .evaluate import evaluate
 from .export import export_policy
+from .model_cache import ModelCache, model_key
 from .nn import in_row_chunks
 from .rollout import ReplayBuffer, model_rollout
 from .sac import SAC
@@ -43,7 +47,7 @@ class TrainResult:
     best_score: float | None = None
     evaluations: list[dict] = field(default_factory=list)
     policy: dict[str, str] | None = None
-    dynamics: dict | None = None
+    dynamics: dict | None = None  # the DynamicsReport, and where the model came from: cache_key, from_cache, cache_path
     timings: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -57,7 +61,10 @@ def seed_everything(seed: int) -> np.random.Generator:
 
 
 class Trainer:
-    def __init__(self, dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path, callback: Callback | None = None):
+    def __init__(self, dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path,
+                 callback: Callback | None = None, model_cache: str | Path | None = None):
+        """`model_cache`: a directory of trained ensembles shared between runs (None: always train). It is not part of
+        the config because it does not change the result."""
         self.cfg = config
         self.out = Path(out_dir)
         self.ckpt_dir = self.out / "checkpoints"
@@ -77,7 +84,8 @@ class Trainer:
             next_obs=t(self.data.next_observations), done=t(self.data.terminals.astype(np.float32)),
         )
         norm = Normalizer.fit(self.data.observations) if config.normalize_obs else Normalizer.identity(obs_dim)
-        self.model = GaussianEnsemble(obs_dim, act_dim, config.dynamics).to(dev)
+        self.model = build_ensemble(obs_dim, act_dim, config.dynamics, config.seed, dev)
+        self.model_cache = ModelCache(model_cache) if model_cache is not None else None
         self.sac = SAC(obs_dim, act_dim, config.sac).to(dev)
         self.sac.set_obs_normalizer(norm.mean, norm.std)
         self.dice = None
@@ -94,6 +102,7 @@ class Trainer:
         self.epoch_started = False  # DICE and rollouts of the current epoch are done
         self.evaluations: list[dict] = []
         self.dynamics_report: DynamicsReport | None = None
+        self.dynamics_source: dict | None = None  # cache_key, from_cache, cache_path
         self.metric_sums: dict[str, torch.Tensor] = {}
         self.metric_count = 0
         self.timings: dict[str, float] = defaultdict(float)
@@ -110,6 +119,7 @@ class Trainer:
             "epoch_started": self.epoch_started,
             "dynamics": self.model.state_dict(),
             "dynamics_report": asdict(self.dynamics_report) if self.dynamics_report else None,
+            "dynamics_source": self.dynamics_source,
             "sac": self.sac.state_dict(), "sac_optim": self.sac.optim_state(),
             "dice": self.dice.state_dict() if self.dice else None,
             "dice_optim": self.dice.optim_state() if self.dice else None,
@@ -126,6 +136,7 @@ class Trainer:
         self.epoch_started = state["epoch_started"]
         self.model.load_state_dict(state["dynamics"])
         self.dynamics_report = DynamicsReport(**state["dynamics_report"]) if state["dynamics_report"] else None
+        self.dynamics_source = state.get("dynamics_source")  # absent from checkpoints written before the model cache
         self.sac.load_state_dict(state["sac"])
         self.sac.load_optim_state(state["sac_optim"])
         if self.dice is not None:
@@ -148,22 +159,38 @@ class Trainer:
 
     # ---------------------------------------------------------------- phases
     def train_dynamics(self) -> bool:
-        """Fit the ensemble; False if the caller stopped it (nothing is checkpointed then)."""
-        total = self.cfg.dynamics.max_epochs or 0
+        """Fit the ensemble, or load it from the model cache; False if the caller stopped it (nothing is checkpointed
+        or cached then). Either way the run's own RNG streams are untouched, so what follows is the same."""
+        cfg, seed = self.cfg.dynamics, self.cfg.seed
+        total = cfg.max_epochs or 0
 
         def on_epoch(epoch: int, holdout: float) -> bool:
             self.cb.on_progress("dynamics", 0, epoch, total)
             self.cb.on_metrics({"dynamics/holdout_mse": holdout}, -epoch)
             return self.cb.should_stop()
 
+        def fit() -> DynamicsReport:
+            return train_dynamics(self.model, self.data, cfg, dynamics_rng(seed), self.device, on_epoch)
+
         start = time.perf_counter()
-        report = train_dynamics(self.model, self.data, self.cfg.dynamics, self.rng, self.device, on_epoch)
+        key = model_key(self.data, cfg, seed)
+        if self.model_cache is None:
+            report, from_cache = fit(), False
+        else:
+            found = self.model_cache.fetch_or_train(key, self.model, fit, self.cb.should_stop)
+            if found is None:
+                return False
+            report, from_cache = found
         self.timings["dynamics"] += time.perf_counter() - start
         if report.stopped_by == "cancelled":
             return False
         self.dynamics_report = report
+        self.dynamics_source = {"cache_key": key, "from_cache": from_cache,
+                                "cache_path": str(self.model_cache.path(key)) if self.model_cache else None}
+        if from_cache:
+            self.cb.on_progress("dynamics", 0, report.epochs, report.epochs)
         self.cb.on_metrics({"dynamics/elite_holdout_mse": float(np.mean(sorted(report.holdout_mse)[: len(report.elites)])),
-                            "dynamics/epochs": float(report.epochs)}, 0)
+                            "dynamics/epochs": float(report.epochs), "dynamics/from_cache": float(from_cache)}, 0)
         return True
 
     @torch.no_grad()
@@ -333,10 +360,12 @@ class Trainer:
             last_return=last["return"] if last else None, last_score=last["normalized_score"] if last else None,
             best_score=max((e["normalized_score"] for e in self.evaluations), default=None),
             evaluations=list(self.evaluations), policy=policy,
-            dynamics=asdict(self.dynamics_report) if self.dynamics_report else None, timings=dict(self.timings),
+            dynamics={**asdict(self.dynamics_report), **(self.dynamics_source or {})} if self.dynamics_report else None,
+            timings=dict(self.timings),
         )
 
 
-def train(dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path, callback: Callback | None = None) -> TrainResult:
-    """The engine's entry point for the service and the CLI."""
-    return Trainer(dataset, config, out_dir, callback).run()
+def train(dataset: str | Path | Dataset, config: TrainConfig, out_dir: str | Path, callback: Callback | None = None,
+          model_cache: str | Path | None = None) -> TrainResult:
+    """The engine's entry point for the service and the CLI; `model_cache` as for `Trainer`."""
+    return Trainer(dataset, config, out_dir, callback, model_cache).run()

@@ -5,16 +5,27 @@ from drop_engine.cli import main
 from drop_engine.data import save_hdf5
 
 
-def test_train_then_evaluate(tmp_path, hopper_arrays, capsys):
+def test_train_then_evaluate(tmp_path, hopper_arrays, capsys, monkeypatch):
     data = tmp_path / "hopper.hdf5"
     save_hdf5(data, hopper_arrays, {"env_name": "Hopper-v4"})
-    out = tmp_path / "run"
-    code = main(["train", "--dataset", str(data), "--env", "hopper", "--algorithm", "mopo", "--preset", "smoke",
-                 "--set", "epochs=1", "--set", "eval_episodes=1", "--threads", "1", "--out", str(out)])
-    assert code == 0
-    printed = json.loads(capsys.readouterr().out)
-    assert printed["status"] == "completed" and printed["epochs"] == 1
-    assert json.loads((out / "summary.json").read_text())["evaluations"][0]["epoch"] == 1
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # the default model cache lives there
+
+    def train(out: str, *cache: str) -> dict:
+        code = main(["train", "--dataset", str(data), "--env", "hopper", "--algorithm", "mopo", "--preset", "smoke",
+                     "--set", "epochs=1", "--set", "eval_episodes=1", "--threads", "1", "--out", str(tmp_path / out),
+                     *cache])
+        assert code == 0
+        return json.loads(capsys.readouterr().out)
+
+    printed = train("run")
+    assert printed["status"] == "completed" and printed["epochs"] == 1 and printed["dynamics_from_cache"] is False
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["evaluations"][0]["epoch"] == 1
+    assert summary["dynamics"]["cache_path"].startswith(str(tmp_path / "home" / ".cache" / "drop-rl" / "models"))
+    assert train("again")["dynamics_from_cache"] is True
+    assert train("elsewhere", "--model-cache", str(tmp_path / "models"))["dynamics_from_cache"] is False
+    assert train("uncached", "--no-model-cache")["dynamics_from_cache"] is False
+    assert json.loads((tmp_path / "uncached" / "summary.json").read_text())["dynamics"]["cache_path"] is None
 
     assert main(["evaluate", "--policy", printed["policy"]["torchscript"], "--env", "hopper", "--episodes", "2"]) == 0
     result = json.loads(capsys.readouterr().out)

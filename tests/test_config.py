@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import ConfigError, build_config
+from drop_engine.config import PRESETS, ConfigError, build_config
 
 
 def test_paper_preset_uses_official_dataset_settings():
@@ -57,3 +57,11 @@ def test_dice_discount_override_is_checked():
     assert build_config("drop", "hopper", "cpu", overrides={"dice.discount": 0.5}).dice_discount == 0.5
     with pytest.raises(ConfigError, match="discount must be in"):
         build_config("drop", "hopper", "cpu", overrides={"dice.discount": 1.5})
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_presets_never_cap_dynamics_by_wall_clock(preset):
+    """A time cap would make the model, and so the whole run, depend on how busy the machine is."""
+    dynamics = build_config("drop", "hopper", preset).dynamics
+    assert dynamics.max_seconds is None
+    assert dynamics.max_epochs is not None or preset == "paper"

@@ -4,7 +4,7 @@ import torch
 
 from drop_engine.config import DynamicsConfig
 from drop_engine.data import Dataset
-from drop_engine.dynamics import GaussianEnsemble, train_dynamics
+from drop_engine.dynamics import GaussianEnsemble, build_ensemble, train_dynamics
 
 
 def _linear_system(n, rng, obs_dim=3, act_dim=2, noise=0.1):
@@ -52,3 +52,18 @@ def test_early_stopping_restores_best_snapshot():
     report = train_dynamics(model, data, cfg, rng, torch.device("cpu"))
     assert report.stopped_by == "patience"
     assert report.epochs < 500
+
+
+def test_initial_ensemble_depends_on_its_seed_only():
+    """What a cached model is keyed by; and building it leaves the run's torch stream alone."""
+    cfg = DynamicsConfig(members=2, elites=1, hidden=8, layers=1)
+    models = []
+    for global_seed in (1, 2):
+        torch.manual_seed(global_seed)
+        before = torch.get_rng_state()
+        models.append(build_ensemble(3, 2, cfg, 5, torch.device("cpu")))
+        assert torch.equal(torch.get_rng_state(), before)
+    for (name, a), b in zip(models[0].state_dict().items(), models[1].state_dict().values()):
+        assert torch.equal(a, b), name
+    other = build_ensemble(3, 2, cfg, 6, torch.device("cpu"))
+    assert not torch.equal(other.body[0].weight, models[0].body[0].weight)

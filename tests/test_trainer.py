@@ -114,3 +114,42 @@ def test_same_seed_same_numbers(tmp_path, hopper_dataset):
     assert runs[0].evaluations == runs[1].evaluations
     other = train(hopper_dataset, _config("mopo", epochs=1).model_copy(update={"seed": 1}), tmp_path / "s1", Recorder())
     assert other.dynamics["holdout_mse"] != runs[0].dynamics["holdout_mse"]
+
+
+def test_cached_model_gives_the_same_run(tmp_path, hopper_dataset, monkeypatch):
+    cfg, cache = _config("drop"), tmp_path / "models"
+    first_rec, second_rec = Recorder(), Recorder()
+    first = Trainer(hopper_dataset, cfg, tmp_path / "a", first_rec, model_cache=cache)
+    result_a = first.run()
+    assert result_a.dynamics["from_cache"] is False
+    assert result_a.dynamics["cache_path"] == str(cache / f"{result_a.dynamics['cache_key']}.pt")
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a cached model was trained again")
+
+    monkeypatch.setattr("drop_engine.trainer.train_dynamics", no_training)
+    second = Trainer(hopper_dataset, cfg, tmp_path / "b", second_rec, model_cache=cache)
+    result_b = second.run()
+    assert result_b.dynamics == {**result_a.dynamics, "from_cache": True}
+    assert not any("dynamics/holdout_mse" in m for _, m in second_rec.metrics)
+    summary = [m for _, m in second_rec.metrics if "dynamics/from_cache" in m]
+    assert summary == [{"dynamics/elite_holdout_mse": pytest.approx(summary[0]["dynamics/elite_holdout_mse"]),
+                        "dynamics/epochs": 3.0, "dynamics/from_cache": 1.0}]
+    # The cached ensemble leaves the run's own RNG streams where training it would have: the same numbers.
+    assert result_a.evaluations == result_b.evaluations
+    rng_a, rng_b = (torch.load(rec.checkpoints[-1], weights_only=False)["rng"] for rec in (first_rec, second_rec))
+    assert rng_a["numpy"] == rng_b["numpy"] and rng_a["python"] == rng_b["python"]
+    assert torch.equal(rng_a["torch"], rng_b["torch"])
+    for (name, pa), pb in zip(first.sac.state_dict().items(), second.sac.state_dict().values()):
+        assert torch.equal(pa, pb), name
+
+
+@pytest.mark.parametrize("change", [{"seed": 1}, {"dynamics": {"patience": 4}}])
+def test_other_seed_or_dynamics_config_is_a_miss(tmp_path, hopper_dataset, change):
+    cfg, cache = _config("mopo"), tmp_path / "models"
+    assert Trainer(hopper_dataset, cfg, tmp_path / "a", model_cache=cache).train_dynamics()
+    if "dynamics" in change:
+        change = {"dynamics": cfg.dynamics.model_copy(update=change["dynamics"])}
+    other = Trainer(hopper_dataset, cfg.model_copy(update=change), tmp_path / "b", model_cache=cache)
+    assert other.train_dynamics() and other.dynamics_source["from_cache"] is False
+    assert len(list(cache.glob("*.pt"))) == 2

@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from app.exc_chain import causes
 from app.models import Dataset, Job, JobEvent, utcnow
 from app.settings import Settings
-from app.storage import job_dir
+from app.storage import job_dir, model_cache_dir
 from app.storage_errors import storage_failure
 
 from .callback import DbCallback
@@ -165,7 +165,8 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     try:
         if dataset is None or not Path(dataset.path).is_file():
             raise DatasetError("file: the job's dataset was deleted")
-        result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback)
+        result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback,
+                       model_cache_dir(settings))
     except DatasetError as exc:
         _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
         return "failed"

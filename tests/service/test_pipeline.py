@@ -1,13 +1,23 @@
-"""Upload -> job -> events -> succeeded -> policy download, through the real API, PostgreSQL, Redis and a worker."""
+"""Upload -> job -> events -> succeeded -> policy download, through the real API, PostgreSQL, Redis and a worker;
+a second job on the same data and seed reuses the first one's dynamics ensemble from the shared model cache."""
 from __future__ import annotations
 
 import io
 import json
+from pathlib import Path
 
 import torch
 
+from app.models import Job
 
-def test_upload_train_download(alice, worker, hopper_file):
+
+def _dynamics(app, job_id: str) -> dict:
+    """What the job's recorded result says about its dynamics ensemble (the API does not show the result)."""
+    with app.state.sessions() as s:
+        return s.get(Job, job_id).result["dynamics"]
+
+
+def test_upload_train_download(alice, worker, hopper_file, app, settings):
     r = alice.upload(hopper_file)
     assert r.status_code == 201, r.text
     ds = r.json()
@@ -28,6 +38,11 @@ def test_upload_train_download(alice, worker, hopper_file):
     assert done["attempts"] == 1 and done["progress"]["fraction"] == 1.0
     assert done["best_score"] is not None and done["last_score"] is not None
     assert "sac/critic_loss" in done["latest_metrics"]
+    # Its ensemble is in the model cache under the data directory (an earlier test may have put it there first).
+    dynamics = _dynamics(app, job["id"])
+    assert Path(dynamics["cache_path"]) == settings.data_dir / "models" / f"{dynamics['cache_key']}.pt"
+    assert Path(dynamics["cache_path"]).is_file() and isinstance(dynamics["from_cache"], bool)
+    assert done["latest_metrics"]["dynamics/from_cache"] == float(dynamics["from_cache"])
 
     events = alice.get(f"/v1/jobs/{job['id']}/events").json()["data"]
     statuses = [e["data"]["status"] for e in events if e["type"] == "status"]
@@ -79,6 +94,16 @@ def test_upload_train_download(alice, worker, hopper_file):
     listed = alice.get("/v1/jobs", params={"status": "succeeded"}).json()["data"]
     assert job["id"] in [j["id"] for j in listed]
     assert alice.post(f"/v1/jobs/{job['id']}/cancel").status_code == 409
+
+    # Same data, seed and dynamics config, another algorithm: the ensemble comes from the cache, not trained again.
+    again = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "algorithm": "mopo", "preset": "smoke", "seed": 1,
+                                         "overrides": {"epochs": 1}}).json()
+    again_done = alice.wait(again["id"], {"succeeded", "failed", "cancelled"})
+    assert again_done["status"] == "succeeded", again_done
+    assert again_done["latest_metrics"]["dynamics/from_cache"] == 1.0
+    assert _dynamics(app, again["id"]) == {**dynamics, "from_cache": True}
+    metrics = alice.get(f"/v1/jobs/{again['id']}/metrics", params={"name": "dynamics/holdout_mse"}).json()["data"]
+    assert metrics == [], "a cached ensemble has no training epochs"
 
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
     assert alice.get(f"/v1/datasets/{ds['id']}").status_code == 404
