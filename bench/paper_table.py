@@ -55,7 +55,7 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
     else:
         overrides = dict(kv.split("=", 1) for kv in args.set)
         cfg = build_config(algorithm, env, args.preset, task=kind, overrides=overrides, seed=seed, device=args.device)
-        result = train(data_path, cfg, run_dir)
+        result = train(data_path, cfg, run_dir, model_cache=args.model_cache)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
         record = {"final": final_score(result.evaluations), "best": result.best_score,
@@ -118,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=10, help="evaluation episodes for BC")
     p.add_argument("--bc-steps", type=int, default=20_000)
     p.add_argument("--runs", default=str(Path.home() / ".cache/drop-rl/bench-runs"))
+    p.add_argument("--model-cache", default=str(Path.home() / ".cache/drop-rl/models"),
+                   help="trained ensembles shared by DROP, MOPO and MBPO on the same dataset and seed")
     p.add_argument("--out", default="bench/results")
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     args = p.parse_args(argv)
