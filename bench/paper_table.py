@@ -27,6 +27,7 @@ import torch
 from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import build_config
 from drop_engine.data import load_dataset
+from drop_engine.run_log import RunLog
 from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
@@ -55,7 +56,7 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
     else:
         overrides = dict(kv.split("=", 1) for kv in args.set)
         cfg = build_config(algorithm, env, args.preset, task=kind, overrides=overrides, seed=seed, device=args.device)
-        result = train(data_path, cfg, run_dir, model_cache=args.model_cache)
+        result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
         record = {"final": final_score(result.evaluations), "best": result.best_score,

@@ -60,3 +60,33 @@ class ProgressBar(Callback):
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+class CallbackList(Callback):
+    """Several callbacks as one: every event goes to each, and any of them can ask to stop."""
+
+    def __init__(self, *callbacks: Callback):
+        self.callbacks = callbacks
+
+    def on_start(self, resumed: tuple[int, int] | None) -> None:
+        for cb in self.callbacks:
+            cb.on_start(resumed)
+
+    def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
+        for cb in self.callbacks:
+            cb.on_progress(phase, epoch, step, total)
+
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        for cb in self.callbacks:
+            cb.on_metrics(metrics, step)
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        for cb in self.callbacks:
+            cb.on_evaluation(epoch, mean_return, normalized_score)
+
+    def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
+        for cb in self.callbacks:
+            cb.on_checkpoint(path, epoch, step)
+
+    def should_stop(self) -> bool:
+        return any(cb.should_stop() for cb in self.callbacks)

@@ -23,8 +23,9 @@ def _parse_override(text: str) -> tuple[str, object]:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .callbacks import ProgressBar
+    from .callbacks import CallbackList, ProgressBar
     from .data import DatasetError
+    from .run_log import RunLog
     from .trainer import train
 
     try:
@@ -37,7 +38,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         return 2
     bar = ProgressBar()
     try:
-        result = train(args.dataset, config, args.out, bar, None if args.no_model_cache else args.model_cache)
+        callback = CallbackList(bar, RunLog(args.out, config.steps_per_epoch))
+        result = train(args.dataset, config, args.out, callback, None if args.no_model_cache else args.model_cache)
     except DatasetError as exc:
         print(f"drop train: {args.dataset}: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,58 @@
+"""A run's history as files beside its checkpoints: `metrics.jsonl` (every metric the service stores, with its step
+and wall time) and `evaluations.csv`, so CLI and benchmark runs can be plotted and diagnosed like service jobs."""
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+from typing import Mapping
+
+from .callbacks import Callback
+
+EVALUATION_FIELDS = ("epoch", "mean_return", "normalized_score", "time")
+
+
+class RunLog(Callback):
+    """Appends as the run goes; a resumed run first drops what a lost run wrote after its checkpoint, so the files
+    hold one continuous history, as the service's tables do."""
+
+    def __init__(self, out_dir: str | Path, steps_per_epoch: int):
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        self.metrics_path, self.evaluations_path = out / "metrics.jsonl", out / "evaluations.csv"
+        self.steps_per_epoch = steps_per_epoch
+
+    def on_start(self, resumed: tuple[int, int] | None) -> None:
+        last_step = -float("inf") if resumed is None else resumed[0] * self.steps_per_epoch + resumed[1]
+        last_epoch = -1 if resumed is None else resumed[0]
+        metrics = self._read_metrics()
+        kept = [m for m in metrics if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
+        self.metrics_path.write_text("".join(json.dumps(m) + "\n" for m in kept))
+        rows = [r for r in self.read_evaluations(self.evaluations_path) if int(r["epoch"]) <= last_epoch]
+        with self.evaluations_path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, EVALUATION_FIELDS)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        line = {"step": step, "time": time.time(), **{k: float(v) for k, v in metrics.items()}}
+        with self.metrics_path.open("a") as f:
+            f.write(json.dumps(line) + "\n")
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        with self.evaluations_path.open("a", newline="") as f:
+            csv.DictWriter(f, EVALUATION_FIELDS).writerow(
+                {"epoch": epoch, "mean_return": mean_return, "normalized_score": normalized_score, "time": time.time()})
+
+    def _read_metrics(self) -> list[dict]:
+        if not self.metrics_path.exists():
+            return []
+        return [json.loads(line) for line in self.metrics_path.read_text().splitlines() if line.strip()]
+
+    @staticmethod
+    def read_evaluations(path: Path) -> list[dict]:
+        if not path.exists():
+            return []
+        with path.open(newline="") as f:
+            return list(csv.DictReader(f))
