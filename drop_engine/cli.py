@@ -43,8 +43,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         bar.close()
     summary = result.to_dict()
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps({k: summary[k] for k in ("status", "epochs", "last_return", "last_score", "best_score", "policy",
-                                              "timings")}, indent=2))
+    keys = ("status", "epochs", "last_return", "last_score", "best_score", "best_epoch", "final_score", "policy",
+            "timings")
+    print(json.dumps({k: summary[k] for k in keys}, indent=2))
     return 0 if result.status == "completed" else 1
 
 
@@ -124,11 +125,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
                    help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
-    p.add_argument("--out", required=True, help="run directory (checkpoints, policy); an existing one is resumed")
+    p.add_argument("--out", required=True, help="run directory (checkpoints, policy/last and policy/best); an existing one is resumed")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="evaluate an exported policy in the real env")
-    p.add_argument("--policy", required=True, help="policy.pt written by train")
+    p.add_argument("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")
     p.add_argument("--env", default="hopper")
     p.add_argument("--env-version", default="v4", choices=["v4", "v5"])
     p.add_argument("--episodes", type=int, default=10)
