@@ -6,6 +6,8 @@ from typing import Any, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, Field
 
+from drop_engine.scores import FINAL_WINDOW
+
 from .models import JOB_STATUSES
 
 Item = TypeVar("Item")
@@ -47,8 +49,11 @@ class JobOut(BaseModel):
     seed: int
     progress: dict[str, Any] | None
     latest_metrics: dict[str, Any] | None
-    best_score: float | None
-    last_score: float | None
+    best_score: float | None = Field(description="the highest normalised score of any evaluation so far")
+    last_score: float | None = Field(description="the normalised score of the latest evaluation")
+    best_epoch: int | None = Field(description="the epoch of best_score (the earlier of ties): the `which=best` policy's")
+    final_score: float | None = Field(description=f"the mean normalised score of the last {FINAL_WINDOW} evaluations "
+                                                  "(fewer if fewer ran): steadier than last_score")
     error: JobError | None
     attempts: int
     max_attempts: int

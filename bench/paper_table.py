@@ -28,6 +28,7 @@ from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import build_config
 from drop_engine.data import load_dataset
 from drop_engine.run_log import RunLog
+from drop_engine.scores import FINAL_WINDOW
 from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
@@ -35,11 +36,6 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 # Bumped when a preset's meaning changes, so runs of the old meaning are kept apart and never counted as the new.
 # 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
 REVISION = 2
-FINAL_OF = 3  # "final" is the mean of the last 3 evaluations: one flipped episode should not decide a row
-
-
-def final_score(evaluations: list[dict]) -> float:
-    return float(np.mean([e["normalized_score"] for e in evaluations[-FINAL_OF:]]))
 
 
 def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
@@ -59,7 +55,7 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
         result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
-        record = {"final": final_score(result.evaluations), "best": result.best_score,
+        record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
                   "evaluations": result.evaluations, "dynamics": result.dynamics}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed,
                    "seconds": time.perf_counter() - start})
@@ -102,7 +98,7 @@ def targets(records: list[dict], datasets: list[str]) -> str:
     drop = [r for r in records if r["algorithm"] == "drop"]
     held = [r for r in drop if r["best"] is not None and r["final"] >= 0.8 * r["best"]]
     lines += ["", f"No collapse (final at least 0.8 of best): {len(held)} of {len(drop)} DROP runs; final is the mean of "
-                  f"the last {FINAL_OF} evaluations."]
+                  f"the last {FINAL_WINDOW} evaluations."]
     return "\n".join(lines) + "\n"
 
 

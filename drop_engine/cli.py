@@ -47,7 +47,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         bar.close()
     summary = result.to_dict()
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
-    keys = ("status", "epochs", "last_return", "last_score", "best_score", "policy", "timings")
+    keys = ("status", "epochs", "last_return", "last_score", "best_score", "best_epoch", "final_score", "policy",
+            "timings")
     shown = {k: summary[k] for k in keys}
     if summary["dynamics"]:
         shown["dynamics_from_cache"] = summary["dynamics"]["from_cache"]
@@ -131,7 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
                    help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
-    p.add_argument("--out", required=True, help="run directory (checkpoints, policy); an existing one is resumed")
+    p.add_argument("--out", required=True, help="run directory (checkpoints, policy/last and policy/best, metrics.jsonl); an existing one is "
+                   "resumed")
     p.add_argument("--model-cache", default=DEFAULT_MODEL_CACHE, metavar="DIR",
                    help="trained dynamics ensembles shared between runs, by dataset, dynamics config and seed "
                         f"(default {DEFAULT_MODEL_CACHE})")
@@ -139,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="evaluate an exported policy in the real env")
-    p.add_argument("--policy", required=True, help="policy.pt written by train")
+    p.add_argument("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")
     p.add_argument("--env", default="hopper")
     p.add_argument("--env-version", default="v4", choices=["v4", "v5"])
     p.add_argument("--episodes", type=int, default=10)

@@ -7,9 +7,12 @@ Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0
 `rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
 mixing real and model transitions, then evaluate every `eval_every` epochs. The whole state, RNGs included, is
 checkpointed at epoch ends and whenever the caller asks to stop, so a resumed run continues the same number stream.
+An evaluation can peak mid-run, so the actor of the best evaluation is kept too (in the checkpoint) and exported beside
+the last one.
 """
 from __future__ import annotations
 
+import copy
 import random
 import time
 from collections import defaultdict
@@ -32,9 +35,10 @@ from .export import export_policy
 from .model_cache import ModelCache, model_key
 from .nn import in_row_chunks
 from .rollout import ReplayBuffer, model_rollout
-from .sac import SAC
+from .sac import SAC, Actor
+from .scores import Which, summarize
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2  # 2: the best actor snapshot
 
 
 @dataclass
@@ -45,13 +49,27 @@ class TrainResult:
     last_return: float | None = None
     last_score: float | None = None
     best_score: float | None = None
+    best_epoch: int | None = None
+    final_score: float | None = None  # mean of the last evaluations' scores (scores.FINAL_WINDOW)
     evaluations: list[dict] = field(default_factory=list)
-    policy: dict[str, str] | None = None
+    policy: dict[Which, dict[str, str]] | None = None  # "last" and "best": file kind -> path
     dynamics: dict | None = None  # the DynamicsReport, and where the model came from: cache_key, from_cache, cache_path
     timings: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass
+class BestActor:
+    """The actor's weights at the best evaluation so far; a CPU copy, so keeping it costs no device memory."""
+    epoch: int
+    score: float
+    state: dict[str, torch.Tensor]
+
+
+def _cpu_copy(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
 
 
 def seed_everything(seed: int) -> np.random.Generator:
@@ -101,6 +119,7 @@ class Trainer:
         self.epoch, self.step_in_epoch, self.global_step = 0, 0, 0
         self.epoch_started = False  # DICE and rollouts of the current epoch are done
         self.evaluations: list[dict] = []
+        self.best: BestActor | None = None
         self.dynamics_report: DynamicsReport | None = None
         self.dynamics_source: dict | None = None  # cache_key, from_cache, cache_path
         self.metric_sums: dict[str, torch.Tensor] = {}
@@ -125,6 +144,7 @@ class Trainer:
             "dice_optim": self.dice.optim_state() if self.dice else None,
             "model_buffer": self.model_buffer.state_dict(),
             "evaluations": self.evaluations,
+            "best": asdict(self.best) if self.best else None,
             "metric_sums": self.metric_sums, "metric_count": self.metric_count,
             "rng": rng,
         }
@@ -144,6 +164,8 @@ class Trainer:
             self.dice.load_optim_state(state["dice_optim"])
         self.model_buffer.load_state_dict(state["model_buffer"])
         self.evaluations = list(state["evaluations"])
+        best = state["best"]
+        self.best = BestActor(best["epoch"], best["score"], _cpu_copy(best["state"])) if best else None
         self.metric_sums, self.metric_count = dict(state["metric_sums"]), state["metric_count"]
         rng = state["rng"]
         torch.set_rng_state(rng["torch"])
@@ -259,6 +281,8 @@ class Trainer:
         record = {"epoch": self.epoch, "step": self.global_step, "return": result.mean_return,
                   "return_std": result.std_return, "normalized_score": result.normalized_score}
         self.evaluations.append(record)
+        if summarize(self._scores()).best_epoch == self.epoch:
+            self.best = BestActor(self.epoch, result.normalized_score, _cpu_copy(actor.state_dict()))
         self.cb.on_evaluation(self.epoch, result.mean_return, result.normalized_score)
         return record
 
@@ -342,23 +366,39 @@ class Trainer:
         self.cb.on_progress("export", self.epoch, 1, 1)
         return self._result("completed", policy)
 
-    def export(self) -> dict[str, str]:
-        last = self.evaluations[-1] if self.evaluations else {}
+    def _scores(self) -> list[tuple[int, float]]:
+        return [(e["epoch"], e["normalized_score"]) for e in self.evaluations]
+
+    def export(self) -> dict[Which, dict[str, str]]:
+        """OUT/policy/last (the actor now) and OUT/policy/best (the best evaluated actor; the last if none was)."""
+        cfg = self.cfg
+        last = self._export("last", self.sac.actor, self.epoch, dict(self._scores()).get(self.epoch), {})
+        if self.best is None:
+            best = self._export("best", self.sac.actor, self.epoch, None,
+                                {"selected_by": "no evaluation ran: this is the last policy"})
+        else:
+            actor = copy.deepcopy(self.sac.actor)  # not a new Actor: its initialisation would draw from the RNG
+            actor.load_state_dict(self.best.state)
+            best = self._export("best", actor, self.best.epoch, self.best.score, {"selected_by": (
+                f"the highest normalised score (the earliest of ties) over the run's simulator evaluations: "
+                f"{cfg.eval_episodes} deterministic episodes in the real env per evaluation, every {cfg.eval_every} "
+                f"epochs and after the last; an online choice, not an offline one")})
+        return {"last": last, "best": best}
+
+    def _export(self, which: Which, actor: Actor, epoch: int, score: float | None, extra: dict) -> dict[str, str]:
         metadata = {
+            "which": which, "epoch": epoch, "normalized_score": score, **extra,
             "env": self.cfg.env, "gym_id": self.spec.gym_id(self.cfg.env_version),
             "obs_dim": self.data.obs_dim, "act_dim": self.data.act_dim, "algorithm": self.cfg.algorithm,
-            "config": self.cfg.model_dump(mode="json"), "epochs": self.epoch,
-            "last_return": last.get("return"), "last_score": last.get("normalized_score"),
-            "best_score": max((e["normalized_score"] for e in self.evaluations), default=None),
+            "config": self.cfg.model_dump(mode="json"), "epochs": self.epoch, **asdict(summarize(self._scores())),
         }
-        return {k: str(v) for k, v in export_policy(self.sac.actor, self.out / "policy", metadata).items()}
+        return {k: str(v) for k, v in export_policy(actor, self.out / "policy" / which, metadata).items()}
 
-    def _result(self, status: str, policy: dict[str, str] | None = None) -> TrainResult:
+    def _result(self, status: str, policy: dict[Which, dict[str, str]] | None = None) -> TrainResult:
         last = self.evaluations[-1] if self.evaluations else None
         return TrainResult(
             status=status, epochs=self.epoch, global_step=self.global_step,
-            last_return=last["return"] if last else None, last_score=last["normalized_score"] if last else None,
-            best_score=max((e["normalized_score"] for e in self.evaluations), default=None),
+            last_return=last["return"] if last else None, **asdict(summarize(self._scores())),
             evaluations=list(self.evaluations), policy=policy,
             dynamics={**asdict(self.dynamics_report), **(self.dynamics_source or {})} if self.dynamics_report else None,
             timings=dict(self.timings),

@@ -26,8 +26,14 @@ def test_train_then_evaluate(tmp_path, hopper_arrays, capsys, monkeypatch):
     assert train("elsewhere", "--model-cache", str(tmp_path / "models"))["dynamics_from_cache"] is False
     assert train("uncached", "--no-model-cache")["dynamics_from_cache"] is False
     assert json.loads((tmp_path / "uncached" / "summary.json").read_text())["dynamics"]["cache_path"] is None
+    # One evaluation: the best policy is the last one, and every score is that evaluation's.
+    assert printed["best_epoch"] == 1 and printed["last_score"] == printed["best_score"] == printed["final_score"]
+    for which in ("last", "best"):
+        assert printed["policy"][which]["torchscript"] == str(tmp_path / "run" / "policy" / which / "policy.pt")
+    assert (tmp_path / "run" / "metrics.jsonl").stat().st_size and (tmp_path / "run" / "evaluations.csv").exists()
 
-    assert main(["evaluate", "--policy", printed["policy"]["torchscript"], "--env", "hopper", "--episodes", "2"]) == 0
+    assert main(["evaluate", "--policy", printed["policy"]["best"]["torchscript"], "--env", "hopper",
+                 "--episodes", "2"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert len(result["returns"]) == 2 and result["normalized_score"] < 100
 
@@ -52,9 +58,9 @@ def test_onnx_copy_matches_torchscript(tmp_path, hopper_dataset):
     from drop_engine.trainer import train
 
     result = train(hopper_dataset, build_config("mbpo", "hopper", "smoke", overrides={"epochs": 1}), tmp_path)
-    onnx_path = export_onnx(result.policy["torchscript"], 11, tmp_path / "policy.onnx")
+    onnx_path = export_onnx(result.policy["last"]["torchscript"], 11, tmp_path / "policy.onnx")
     obs = hopper_dataset.observations[:7]
     session = onnxruntime.InferenceSession(str(onnx_path))
     (onnx_act,) = session.run(None, {"obs": obs})
-    np.testing.assert_allclose(onnx_act, load_policy(result.policy["torchscript"])(obs), atol=1e-5)
+    np.testing.assert_allclose(onnx_act, load_policy(result.policy["last"]["torchscript"])(obs), atol=1e-5)
     assert not torch.equal(torch.as_tensor(onnx_act[0]), torch.as_tensor(onnx_act[1]))

@@ -1,14 +1,19 @@
-"""Smoke runs of all three algorithms, exact stop-and-resume, and an exported policy that needs only torch."""
+"""Smoke runs of all three algorithms, exact stop-and-resume, and exported last and best policies that need only
+torch."""
+import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
 
+from drop_engine import trainer as trainer_module
 from drop_engine.callbacks import Callback
-from drop_engine.checkpoint import list_checkpoints
+from drop_engine.checkpoint import checkpoint_name, list_checkpoints, load_latest
 from drop_engine.config import build_config
+from drop_engine.export import load_policy
 from drop_engine.trainer import Trainer, train
 
 
@@ -65,18 +70,53 @@ def test_smoke_run_writes_checkpoints_metrics_and_policy(tmp_path, hopper_datase
     assert [e[0] for e in rec.evaluations] == [1, 2]
     assert {"dynamics", "train", "export"} <= rec.phases
 
-    meta = json.loads((tmp_path / "policy" / "metadata.json").read_text())
-    assert meta["algorithm"] == algorithm and meta["obs_dim"] == 11
-    # The TorchScript policy loads with drop_engine made unimportable, and maps a batch to bounded actions.
+    for which in ("last", "best"):
+        meta = json.loads((tmp_path / "policy" / which / "metadata.json").read_text())
+        assert meta["algorithm"] == algorithm and meta["obs_dim"] == 11 and meta["which"] == which
+        state = torch.load(result.policy[which]["state_dict"])
+        assert any(k.startswith("norm.") for k in state)
+    # Both TorchScript policies load with drop_engine made unimportable, and map a batch to bounded actions.
+    paths = [result.policy[which]["torchscript"] for which in ("last", "best")]
     script = (
         "import sys, torch; sys.modules['drop_engine'] = None\n"
-        f"m = torch.jit.load({str(result.policy['torchscript'])!r})\n"
-        "a = m(torch.randn(5, 11)); assert a.shape == (5, 3) and a.abs().max() <= 1; print(a.sum().item())"
+        f"for path in {paths!r}:\n"
+        "    a = torch.jit.load(path)(torch.randn(5, 11)); assert a.shape == (5, 3) and a.abs().max() <= 1\n"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    state = torch.load(result.policy["state_dict"])
-    assert any(k.startswith("norm.") for k in state)
+
+
+def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_dataset, monkeypatch):
+    """Scores scripted over real evaluations: a peak mid-run, tied once later, then a drop."""
+    scripted = iter([3.0, 7.0, 7.0, 1.0])
+    real = trainer_module.evaluate
+    monkeypatch.setattr(trainer_module, "evaluate",
+                        lambda *a, **k: dataclasses.replace(real(*a, **k), normalized_score=next(scripted)))
+    cfg = _config("mopo", epochs=4, keep_checkpoints=10)
+    result = train(hopper_dataset, cfg, tmp_path / "run", Recorder())
+
+    scores = [e["normalized_score"] for e in result.evaluations]
+    argmax = result.evaluations[scores.index(max(scores))]["epoch"]  # index: the first of ties
+    assert argmax == result.best_epoch == 2
+    assert (result.last_score, result.best_score, result.final_score) == (1.0, 7.0, 5.0)
+    meta = {w: json.loads(Path(result.policy[w]["metadata"]).read_text()) for w in ("last", "best")}
+    assert (meta["best"]["which"], meta["best"]["epoch"], meta["best"]["normalized_score"]) == ("best", 2, 7.0)
+    selected_by = meta["best"]["selected_by"]
+    assert "2 deterministic episodes" in selected_by and "an online choice" in selected_by
+    assert (meta["last"]["which"], meta["last"]["epoch"], meta["last"]["normalized_score"]) == ("last", 4, 1.0)
+
+    # Each exported policy acts as the actor did at its epoch, as that epoch's checkpoint recorded it.
+    probe = Trainer(hopper_dataset, cfg, tmp_path / "probe")
+    obs = torch.as_tensor(hopper_dataset.observations[:64])
+    actions = {}
+    for which, epoch in (("best", 2), ("last", 4)):
+        checkpoint = tmp_path / "run" / "checkpoints" / checkpoint_name(epoch, 0)
+        probe.load_state_dict(torch.load(checkpoint, weights_only=False))
+        with torch.no_grad():
+            expected = probe.sac.actor.act(obs, deterministic=True).numpy()
+        actions[which] = load_policy(result.policy[which]["torchscript"])(obs.numpy())
+        torch.testing.assert_close(torch.as_tensor(actions[which]), torch.as_tensor(expected), atol=1e-6, rtol=0)
+    assert not torch.allclose(torch.as_tensor(actions["best"]), torch.as_tensor(actions["last"]))
 
 
 def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
@@ -89,6 +129,13 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
     b1 = Trainer(hopper_dataset, cfg, tmp_path / "b", first)
     assert b1.run().status == "stopped"
     assert b1.epoch == 1 and 0 < b1.step_in_epoch < cfg.steps_per_epoch
+    # The best actor so far (of epoch 1's evaluation) is in the checkpoint, so a resumed run can still export it.
+    probe = Trainer(hopper_dataset, cfg, tmp_path / "probe")
+    probe.load_state_dict(load_latest(tmp_path / "b" / "checkpoints"))
+    assert (probe.best.epoch, probe.best.score) == (b1.best.epoch, b1.best.score)
+    assert (b1.best.epoch, b1.best.score) == (1, result_a.evaluations[0]["normalized_score"])
+    for name, pb in b1.best.state.items():
+        assert torch.equal(pb, probe.best.state[name]), name
     second = Recorder()
     b2 = Trainer(hopper_dataset, cfg, tmp_path / "b", second)
     result_b = b2.run()
@@ -99,6 +146,9 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
     for (name, pa), pb in zip(a.sac.state_dict().items(), b2.sac.state_dict().values()):
         assert torch.equal(pa, pb), name
     assert result_a.evaluations == result_b.evaluations
+    assert (a.best.epoch, a.best.score) == (b2.best.epoch, b2.best.score)
+    for name, pa in a.best.state.items():
+        assert torch.equal(pa, b2.best.state[name]), name
     # One continuous history, nothing repeated (wall-clock timings aside).
     assert _untimed(whole) == _untimed(first) + _untimed(second)
 

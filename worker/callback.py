@@ -3,6 +3,7 @@ cancellation check. Writes are fenced by the attempt number so a worker that los
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -11,6 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from drop_engine.callbacks import Callback
+from drop_engine.scores import summarize
 
 PROGRESS_EVERY_S = 1.0
 
@@ -29,6 +31,13 @@ class DbCallback(Callback):
     def _mine(self):
         return (Job.id == self.job_id) & (Job.attempts == self.attempt) & Job.status.in_(("running", "cancelling"))
 
+    def _score_columns(self, s: Session, *new: tuple[int, float]) -> dict:
+        """The job's last, best, best_epoch and final score columns from its recorded evaluations plus `new` ones,
+        by the engine's own rule, so the job agrees with the exported best policy."""
+        rows = s.execute(select(JobEvaluation.epoch, JobEvaluation.normalized_score)
+                         .where(JobEvaluation.job_id == self.job_id).order_by(JobEvaluation.epoch, JobEvaluation.id))
+        return asdict(summarize([*map(tuple, rows), *new]))
+
     def on_start(self, resumed: tuple[int, int] | None) -> None:
         """Drop what a lost attempt recorded after the point this one starts from, so the job keeps one continuous
         metrics and evaluation history. Rows are ordered by their creation time: the lost attempt wrote both the
@@ -46,10 +55,7 @@ class DbCallback(Callback):
             for table in (JobMetric, JobEvaluation):
                 stale = delete(table).where(table.job_id == self.job_id)
                 s.execute(stale if since is None else stale.where(table.created_at > since))
-            scores = s.execute(select(JobEvaluation.normalized_score).where(JobEvaluation.job_id == self.job_id)
-                               .order_by(JobEvaluation.epoch)).scalars().all()
-            s.execute(update(Job).where(self._mine()).values(last_score=scores[-1] if scores else None,
-                                                             best_score=max(scores, default=None)))
+            s.execute(update(Job).where(self._mine()).values(**self._score_columns(s)))
 
     def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
         now = time.monotonic()
@@ -76,9 +82,8 @@ class DbCallback(Callback):
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         with self.sessions.begin() as s:
-            best = s.scalar(select(Job.best_score).where(Job.id == self.job_id))
-            best = normalized_score if best is None else max(best, normalized_score)
-            if s.execute(update(Job).where(self._mine()).values(last_score=normalized_score, best_score=best)).rowcount:
+            scores = self._score_columns(s, (epoch, normalized_score))
+            if s.execute(update(Job).where(self._mine()).values(**scores)).rowcount:
                 s.add(JobEvaluation(job_id=self.job_id, epoch=epoch, mean_return=mean_return,
                                     normalized_score=normalized_score))
                 s.add(JobEvent(job_id=self.job_id, type="evaluation",

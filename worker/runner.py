@@ -104,16 +104,19 @@ def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message:
 
 
 def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int) -> None:
-    """Best effort: a policy that cannot be expressed in ONNX still leaves TorchScript and state_dict."""
+    """An ONNX copy beside each exported policy (last and best). Best effort: a policy that cannot be expressed in ONNX
+    still leaves TorchScript and state_dict."""
     from drop_engine.export import export_onnx
 
-    try:
-        torchscript = Path(result.policy["torchscript"])
-        result.policy["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name("policy.onnx")))
-    except Exception as exc:
-        log.exception("ONNX export of %s failed", job_id)
-        with sessions.begin() as s:
-            s.add(JobEvent(job_id=job_id, type="warning", message=f"ONNX export failed: {type(exc).__name__}: {exc}"))
+    for which, files in result.policy.items():
+        try:
+            torchscript = Path(files["torchscript"])
+            files["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name("policy.onnx")))
+        except Exception as exc:
+            log.exception("ONNX export of %s's %s policy failed", job_id, which)
+            with sessions.begin() as s:
+                s.add(JobEvent(job_id=job_id, type="warning",
+                               message=f"ONNX export of the {which} policy failed: {type(exc).__name__}: {exc}"))
 
 
 def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:

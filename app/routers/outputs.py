@@ -13,6 +13,8 @@ from fastapi.responses import FileResponse, StreamingResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from drop_engine.scores import Which
+
 from .. import serialize
 from ..curve import render
 from ..deps import DB, Config, Owner, owned_job
@@ -118,15 +120,19 @@ POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
                 "metadata": ("metadata.json", "application/json")}
 
 
-@router.get("/policy", summary="The trained policy: TorchScript or ONNX (obs batch -> actions), state_dict, or metadata",
-            response_class=FileResponse)
-def job_policy(job_id: str, format: Literal["torchscript", "state_dict", "onnx", "metadata"] = "torchscript",
+@router.get("/policy", summary="A trained policy, last or best: TorchScript or ONNX (obs batch -> actions), state_dict, "
+                               "or metadata", response_class=FileResponse)
+def job_policy(job_id: str,
+               which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one of the "
+                                                         "evaluation with the highest normalised score (the earlier of "
+                                                         "ties), chosen by evaluations in the real env")] = "last",
+               format: Literal["torchscript", "state_dict", "onnx", "metadata"] = "torchscript",
                owner: str = Owner, s: Session = DB, settings: Settings = Config):
     job = owned_job(s, owner, job_id)
     if job.status != "succeeded":
         raise Problem(409, "policy_not_ready", f"job {job_id} is {job.status}; a policy exists once it has succeeded")
     name, media = POLICY_FILES[format]
-    path = job_dir(settings, job_id) / "policy" / name
+    path = job_dir(settings, job_id) / "policy" / which / name
     if not path.is_file():
-        raise Problem(404, "not_found", f"job {job_id} has no {format} policy file")
-    return FileResponse(path, media_type=media, filename=f"{job_id}-{name}")
+        raise Problem(404, "not_found", f"job {job_id} has no {format} file for its {which} policy")
+    return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{name}")

@@ -66,6 +66,7 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
             assert sorted(e["epoch"] for e in evaluations) == [1, 2, 3, 4, 5, 6], evaluations
             scores = [e["normalized_score"] for e in sorted(evaluations, key=lambda e: e["epoch"])]
             assert (done["last_score"], done["best_score"]) == (scores[-1], max(scores))
+            assert (done["best_epoch"], done["final_score"]) == (scores.index(max(scores)) + 1, sum(scores[-3:]) / 3)
             assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
     finally:
         kill_group(first)

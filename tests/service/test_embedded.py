@@ -77,4 +77,5 @@ def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file):
         http.close()
         serve.stop()
     assert (tmp_path / "data" / "drop.db").is_file()
-    assert (tmp_path / "data" / "jobs" / job["id"] / "policy" / "policy.pt").is_file()
+    assert all((tmp_path / "data" / "jobs" / job["id"] / "policy" / which / "policy.pt").is_file()
+               for which in ("last", "best"))

@@ -89,3 +89,5 @@ def test_health(client):
     assert client.get("/readyz").json() == {"status": "ready"}
     spec = client.get("/openapi.json").json()
     assert "/v1/jobs/{job_id}/policy" in spec["paths"] and "/v1/datasets" in spec["paths"]
+    which = next(p for p in spec["paths"]["/v1/jobs/{job_id}/policy"]["get"]["parameters"] if p["name"] == "which")
+    assert which["schema"]["enum"] == ["last", "best"] and which["schema"]["default"] == "last"

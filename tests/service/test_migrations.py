@@ -1,4 +1,4 @@
-"""The service refuses an unmigrated database, and `drop db upgrade` fixes it."""
+"""The service refuses an unmigrated database, and `drop db upgrade` fixes it; upgrading keeps recorded jobs whole."""
 from __future__ import annotations
 
 import pytest
@@ -20,3 +20,30 @@ def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, cap
     assert main(["token", "create", "--name", "carol"]) == 0
     token = capsys.readouterr().out.strip().splitlines()[-1]
     assert token.startswith("drop_") and len(token) > 40
+
+
+def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
+    from alembic import command
+    from sqlalchemy import text
+
+    from app.db import alembic_config, make_engine, upgrade
+
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    command.upgrade(alembic_config(url), "0001")
+    engine = make_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO owners (id, name, created_at) VALUES ('own_1', 'old', CURRENT_TIMESTAMP)"))
+        for job_id in ("job_evaluated", "job_queued"):
+            conn.execute(text(
+                "INSERT INTO jobs (id, owner_id, algorithm, env, preset, overrides, seed, config, status, attempts, "
+                "max_attempts, max_runtime_s, created_at) VALUES (:id, 'own_1', 'drop', 'hopper', 'smoke', '{}', 0, "
+                "'{}', 'succeeded', 1, 3, 600, CURRENT_TIMESTAMP)"), {"id": job_id})
+        for epoch, score in ((4, 2.0), (1, 6.0), (2, 1.0), (3, 6.0)):  # inserted out of order: epochs decide
+            conn.execute(text("INSERT INTO job_evaluations (job_id, epoch, mean_return, normalized_score, created_at) "
+                              "VALUES ('job_evaluated', :epoch, 0, :score, CURRENT_TIMESTAMP)"),
+                         {"epoch": epoch, "score": score})
+    upgrade(url)
+    with engine.connect() as conn:
+        rows = {r.id: (r.best_epoch, r.final_score) for r in conn.execute(text("SELECT id, best_epoch, final_score FROM jobs"))}
+    engine.dispose()
+    assert rows == {"job_evaluated": (1, 3.0), "job_queued": (None, None)}

@@ -68,6 +68,9 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     assert metrics and all(m["name"] == "sac/critic_loss" for m in metrics)
     evals = alice.get(f"/v1/jobs/{job['id']}/evaluations").json()["data"]
     assert [e["epoch"] for e in evals] == [1, 2] and evals[-1]["normalized_score"] == done["last_score"]
+    scores = [e["normalized_score"] for e in evals]
+    assert done["best_epoch"] == evals[scores.index(max(scores))]["epoch"] and done["best_score"] == max(scores)
+    assert done["final_score"] == sum(scores) / len(scores)  # fewer than three evaluations: the mean of all
     ckpts = alice.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"]
     assert ckpts and ckpts[-1]["epoch"] == 2 and ckpts[-1]["size_bytes"] > 0
     png = alice.get(f"/v1/jobs/{job['id']}/curve.png")
@@ -89,7 +92,23 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     onnx_actions = onnxruntime.InferenceSession(onnx.content).run(None, {"obs": obs})[0]
     np.testing.assert_allclose(onnx_actions, policy(torch.from_numpy(obs)).detach().numpy(), atol=1e-5)
     meta = alice.get(f"/v1/jobs/{job['id']}/policy", params={"format": "metadata"}).json()
-    assert meta["env"] == "hopper" and meta["obs_dim"] == 11
+    assert meta["env"] == "hopper" and meta["obs_dim"] == 11 and (meta["which"], meta["epoch"]) == ("last", 2)
+
+    # The best policy: its own files, every format, with metadata naming the evaluation it was chosen by.
+    best = {f: alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best", "format": f})
+            for f in ("torchscript", "state_dict", "onnx", "metadata")}
+    assert all(r.status_code == 200 for r in best.values()), {f: r.text for f, r in best.items()}
+    assert "-best-" in best["torchscript"].headers["content-disposition"]
+    best_actions = torch.jit.load(io.BytesIO(best["torchscript"].content))(torch.from_numpy(obs))
+    np.testing.assert_allclose(onnxruntime.InferenceSession(best["onnx"].content).run(None, {"obs": obs})[0],
+                               best_actions.detach().numpy(), atol=1e-5)
+    best_meta = best["metadata"].json()
+    assert (best_meta["which"], best_meta["epoch"]) == ("best", done["best_epoch"])
+    assert best_meta["normalized_score"] == done["best_score"] and "deterministic episodes" in best_meta["selected_by"]
+    assert alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "last"}).content == r.content  # r: the default
+    bad = alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "worst"})
+    assert bad.status_code == 422 and bad.headers["content-type"] == "application/problem+json"
+    assert bad.json()["errors"][0]["field"] == "query.which", bad.text
 
     listed = alice.get("/v1/jobs", params={"status": "succeeded"}).json()["data"]
     assert job["id"] in [j["id"] for j in listed]

@@ -1,0 +1,49 @@
+"""The job's score columns follow the engine's rule (best: the earliest of ties; final: the mean of the last three)
+through evaluations and through a resumed attempt that drops what a lost one reported after its checkpoint."""
+from __future__ import annotations
+
+import pytest
+from sqlalchemy import update
+
+from app.auth import get_or_create_owner
+from app.db import make_engine, make_sessionmaker
+from app.models import Job
+from worker.callback import DbCallback
+
+
+@pytest.fixture
+def sessions(own_settings):
+    engine = make_engine(own_settings.database_url)
+    yield make_sessionmaker(engine)
+    engine.dispose()
+
+
+def _columns(sessions, job_id: str) -> tuple:
+    with sessions() as s:
+        job = s.get(Job, job_id)
+        return job.last_score, job.best_score, job.best_epoch, job.final_score
+
+
+def test_scores_follow_evaluations_and_a_resume(sessions, tmp_path):
+    with sessions.begin() as s:
+        owner = get_or_create_owner(s, "scores")
+        s.add(Job(id="job_scores", owner_id=owner.id, algorithm="drop", env="hopper", preset="smoke", overrides={},
+                  seed=0, config={}, status="running", attempts=1, max_attempts=3, max_runtime_s=600))
+    first = DbCallback(sessions, "job_scores", 1, cancel_poll_s=0.1)
+    first.on_start(None)
+    first.on_evaluation(1, 10.0, 5.0)
+    first.on_evaluation(2, 20.0, 9.0)
+    checkpoint = tmp_path / "ckpt.pt"
+    checkpoint.write_bytes(b"x")
+    first.on_checkpoint(checkpoint, 2, 0)
+    first.on_evaluation(3, 30.0, 12.0)  # reported after the checkpoint, then the attempt is lost
+    assert _columns(sessions, "job_scores") == (12.0, 12.0, 3, (5.0 + 9.0 + 12.0) / 3)
+
+    with sessions.begin() as s:
+        s.execute(update(Job).where(Job.id == "job_scores").values(attempts=2))
+    second = DbCallback(sessions, "job_scores", 2, cancel_poll_s=0.1)
+    second.on_start((2, 0))
+    assert _columns(sessions, "job_scores") == (9.0, 9.0, 2, 7.0)
+    second.on_evaluation(3, 15.0, 1.0)
+    second.on_evaluation(4, 30.0, 9.0)  # ties the best: epoch 2 stays the best
+    assert _columns(sessions, "job_scores") == (9.0, 9.0, 2, (9.0 + 1.0 + 9.0) / 3)
