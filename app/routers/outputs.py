@@ -132,7 +132,10 @@ def job_policy(job_id: str,
     if job.status != "succeeded":
         raise Problem(409, "policy_not_ready", f"job {job_id} is {job.status}; a policy exists once it has succeeded")
     name, media = POLICY_FILES[format]
-    path = job_dir(settings, job_id) / "policy" / which / name
+    folder = job_dir(settings, job_id) / "policy"
+    path = folder / which / name
+    if which == "last" and not path.is_file():
+        path = folder / name  # a job that succeeded before runs exported both policies kept its only one here
     if not path.is_file():
         raise Problem(404, "not_found", f"job {job_id} has no {format} file for its {which} policy")
     return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{name}")

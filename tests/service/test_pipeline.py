@@ -9,6 +9,7 @@ from pathlib import Path
 import torch
 
 from app.models import Job
+from app.storage import job_dir
 
 
 def _dynamics(app, job_id: str) -> dict:
@@ -109,6 +110,12 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     bad = alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "worst"})
     assert bad.status_code == 422 and bad.headers["content-type"] == "application/problem+json"
     assert bad.json()["errors"][0]["field"] == "query.which", bad.text
+    # A job that succeeded before runs kept both policies has its one policy directly under policy/: the default
+    # download still finds it.
+    folder = job_dir(settings, job["id"]) / "policy"
+    for f in (folder / "last").iterdir():
+        f.rename(folder / f.name)
+    assert alice.get(f"/v1/jobs/{job['id']}/policy").content == r.content
 
     listed = alice.get("/v1/jobs", params={"status": "succeeded"}).json()["data"]
     assert job["id"] in [j["id"] for j in listed]
