@@ -13,6 +13,7 @@ bench-data` remakes the same files).
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
 import sys
@@ -61,6 +62,10 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
                    "seconds": time.perf_counter() - start})
     done.write_text(json.dumps(record, indent=2))
     return record
+
+
+def key(r: dict) -> tuple:
+    return r["env"], r["kind"], r["algorithm"], r["seed"]
 
 
 def behaviour_score(path: Path) -> float | None:
@@ -119,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="trained ensembles shared by DROP, MOPO and MBPO on the same dataset and seed")
     p.add_argument("--out", default="bench/results")
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
+    p.add_argument("--threads", type=int, default=None, help="torch threads per run (default: 1 with --jobs > 1)")
     args = p.parse_args(argv)
 
     out = Path(args.out)
@@ -126,15 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     results = out / "paper_table.json"
     same_setting = {"preset": args.preset, "set": sorted(args.set), "revision": REVISION}
     kept = json.loads(results.read_text()) if results.exists() else {}
-    # Runs of other settings stay in the file untouched; only this setting's runs make this table.
-    other_settings = [r for r in kept.get("records", []) if r["setting"] != same_setting]
-    records = [r for r in kept.get("records", []) if r["setting"] == same_setting]
-    behaviour = dict(kept.get("behaviour", {}))
+    done = {key(r) for r in kept.get("records", []) if r["setting"] == same_setting}
+    behaviour: dict[str, float | None] = {}
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
     runs = Path(args.runs) / "_".join([f"{args.preset}-r{REVISION}", *same_setting["set"]]).replace("/", "-")
-
-    def key(r: dict) -> tuple:
-        return r["env"], r["kind"], r["algorithm"], r["seed"]
 
     todo = []
     for env in args.envs:
@@ -145,28 +146,38 @@ def main(argv: list[str] | None = None) -> int:
             behaviour[f"{env}-{kind}"] = behaviour_score(path)
             # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
             todo += [(path, env, kind, algorithm, seed) for seed in args.seeds for algorithm in args.algorithms
-                     if (env, kind, algorithm, seed) not in {key(r) for r in records}]
+                     if (env, kind, algorithm, seed) not in done]
 
-    def write() -> str:
-        ordered = sorted(records, key=key)
-        results.write_text(json.dumps({"behaviour": behaviour, "records": other_settings + ordered}, indent=2))
+    def write(record: dict | None = None) -> str:
+        """Merge into the file as it is now (another invocation may be filling other rows), under a lock."""
+        with open(results.with_suffix(".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            now = json.loads(results.read_text()) if results.exists() else {}
+            merged = [r for r in now.get("records", [])
+                      if record is None or not (r["setting"] == same_setting and key(r) == key(record))]
+            merged += [{**record, "setting": same_setting}] if record else []
+            scores = {**now.get("behaviour", {}), **behaviour}
+            results.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
+        mine = sorted((r for r in merged if r["setting"] == same_setting), key=key)
+        datasets = {f"{r['env']}-{r['kind']}" for r in mine}
         overrides = " ".join(same_setting["set"])
-        text = (f"# Table 1 at CPU scale (preset `{args.preset}`{', ' + overrides if overrides else ''}; "
-                f"D4RL normalised scores, mean ± std over n seeds)\n\n" + table(ordered, behaviour, args.algorithms))
+        text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
+                f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
+                + table(mine, {d: v for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
         (out / "paper_table.md").write_text(text)
         return text
 
     # Runs side by side get one torch thread each, behaviour cloning included: two threads per run on a machine whose
     # cores are all taken spin-wait (BC took 5x longer). A speed setting, not part of a run's identity.
+    threads = args.threads or (1 if args.jobs > 1 else None)
     with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"),
-                             initializer=torch.set_num_threads if args.jobs > 1 else None, initargs=(1,)) as pool:
+                             initializer=torch.set_num_threads if threads else None, initargs=(threads,)) as pool:
         futures = [pool.submit(run_one, *job, args, runs) for job in todo]
         for future in futures:
             record = future.result()
-            records.append({**record, "setting": same_setting})
             print(f"{record['env']}-{record['kind']} {record['algorithm']} seed {record['seed']}: "
                   f"final {record['final']:.1f}", flush=True)
-            write()
+            write(record)
     print(write())
     return 0
 
