@@ -9,7 +9,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore", allow_inf_nan=False)
 
     data_dir: Path = Field(Path("data"), description="datasets, job runs, broker folders, SQLite file")
     database_url: str | None = Field(None, description="default: sqlite:///<data_dir>/drop.db")
