@@ -5,8 +5,10 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from . import joblimits
 from .models import Dataset
 from .problems import Problem
+from .settings import Settings
 
 # Identity fields are job fields, and the device and threads belong to the worker: not overridable.
 ALGORITHMS = ("drop", "mopo", "mbpo")
@@ -53,10 +55,11 @@ def _invalid(code: str, detail: str, field: str) -> Problem:
     return Problem(422, code, detail, errors=[{"field": field, "message": detail}])
 
 
-def build(req: JobRequest, dataset: Dataset) -> tuple[str, dict]:
-    """(env name, config as JSON) for this request on this dataset."""
+def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, dict]:
+    """(env name, config as JSON) for this request on this dataset, within the server's limits on a job."""
     from drop_engine.config import PRESETS, ConfigError, build_config
     from drop_engine.envs import get_env
+    from drop_engine.resources import DataShape
 
     if req.algorithm not in ALGORITHMS:
         raise _invalid("unknown_algorithm", f"algorithm: {req.algorithm!r} is not one of {', '.join(ALGORITHMS)}",
@@ -85,4 +88,5 @@ def build(req: JobRequest, dataset: Dataset) -> tuple[str, dict]:
         message = str(exc)
         field = message.split(":", 1)[0] if ":" in message else "overrides"
         raise _invalid("invalid_config", message, field) from None
+    joblimits.check(config, DataShape(dataset.report["transitions"], dataset.obs_dim, dataset.act_dim), settings)
     return spec.name, config.model_dump(mode="json")

@@ -1,5 +1,5 @@
-"""What one job may ask for: every number bounded and finite, and overrides shallow. Each refusal is a 422 naming the
-field."""
+"""What one job may ask for: every number bounded and finite, overrides shallow, and the whole run within the server's
+limits on memory, SAC updates, metric rows and evaluation episodes. Each refusal is a 422 naming the field."""
 from __future__ import annotations
 
 import json
@@ -8,6 +8,10 @@ from contextlib import ExitStack
 import pytest
 
 from app.db import upgrade
+from app.joblimits import check
+from app.settings import Settings
+from drop_engine.config import PRESETS, build_config
+from drop_engine.resources import DataShape
 
 from .private_api import private_api, tiny_npz
 
@@ -79,3 +83,53 @@ def test_deep_overrides_are_422(apis, depth, nest):
     """300 levels once overflowed the serialiser's depth limit: a 500."""
     problem = _refused(_post(apis, nest(depth)), "validation_error", "overrides")
     assert "nested more than 8 levels deep" in problem["detail"]
+
+
+@pytest.mark.parametrize("overrides, field, setting", [
+    ({"eval_episodes": 500}, "eval_episodes", "DROP_MAX_JOB_EVAL_EPISODES"),
+    ({"rollout.batch_size": 1_000_000, "rollout.horizon": 1_000}, "estimate.memory_bytes",
+     "DROP_MAX_JOB_MEMORY_BYTES"),
+    ({"epochs": 100_000, "steps_per_epoch": 1_000}, "estimate.sac_updates", "DROP_MAX_JOB_SAC_UPDATES"),
+    ({"epochs": 1_000, "steps_per_epoch": 1_000, "log_every": 1}, "estimate.metric_rows", "DROP_MAX_JOB_METRIC_ROWS"),
+])
+def test_jobs_over_the_server_limits_are_422(apis, overrides, field, setting):
+    problem = _refused(_post(apis, json.dumps(overrides)), "job_over_limit", field)
+    limit = getattr(Settings(), setting.removeprefix("DROP_").lower())
+    assert [e["limit"] for e in problem["errors"] if e["field"] == field] == [limit]
+    assert "exceeds the server's limit of" in problem["detail"] and f"({setting})" in problem["detail"]
+    value = problem["estimate"][field.removeprefix("estimate.")] if "." in field else overrides[field]
+    assert value > limit
+
+
+def test_the_memory_detail_says_where_it_goes(apis):
+    """Smoke DROP on 39 rows: a model buffer of 10^6 rollouts x 1,000 steps x 2 epochs x 108-byte rows, and rollouts
+    keeping 3 floats per step for the statistics besides each start state's tensors."""
+    r = _post(apis, '{"rollout": {"batch_size": 1000000, "horizon": 1000}}')
+    assert _refused(r, "job_over_limit", "estimate.memory_bytes")["detail"] == (
+        "estimated memory 213 GiB (process 400 MiB, parameters 257 KiB, data 11.9 KiB, model buffer 201 GiB, "
+        "largest phase 11.7 GiB) exceeds the server's limit of 8 GiB (DROP_MAX_JOB_MEMORY_BYTES)")
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_is_accepted(apis, preset):
+    r = _post(apis, '{"sac": {"hidden": [256, 256]}}', preset=preset)
+    assert r.status_code == 201, r.text
+
+
+def test_the_limits_are_settings(settings):
+    with private_api(settings, max_job_memory_bytes=300 << 20, max_job_eval_episodes=1) as (_, client):
+        dataset_id = client.post("/v1/datasets", content=tiny_npz(1)).json()["id"]
+        r = client.post("/v1/jobs", json={"dataset_id": dataset_id, "env": "hopper", "preset": "smoke"})
+        problem = _refused(r, "job_over_limit", "estimate.memory_bytes")
+        assert {e["field"] for e in problem["errors"]} == {"estimate.memory_bytes", "eval_episodes"}
+        assert "limit of 300 MiB (DROP_MAX_JOB_MEMORY_BYTES)" in problem["detail"]
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_default_limits_admit_every_preset_on_a_large_dataset(preset):
+    """2 million rows of 17-dim observations and 6-dim actions (halfcheetah-medium-expert's shape)."""
+    shape = DataShape(2_000_000, 17, 6)
+    for algorithm in ("drop", "mopo", "mbpo"):
+        for env in ("hopper", "walker2d", "halfcheetah"):
+            for task in ("random", "medium", "medium-replay", "medium-expert"):
+                check(build_config(algorithm, env, preset, task), shape, Settings())
