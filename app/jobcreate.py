@@ -3,18 +3,35 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from . import joblimits
 from .models import Dataset
 from .problems import Problem
+from .settings import Settings
 
 # Identity fields are job fields, and the device and threads belong to the worker: not overridable.
 ALGORITHMS = ("drop", "mopo", "mbpo")
 RESERVED_OVERRIDES = {"algorithm", "env", "preset", "seed", "device", "task", "threads"}
+# Overrides nest two levels ({"sac": {"hidden": [64, 64]}}); hundreds of levels overflow the serialiser's depth limit.
+MAX_OVERRIDE_DEPTH = 8
+
+
+def _depth(value: Any) -> int:
+    """Nesting depth of lists and dicts, walked without recursion, so no input can overflow the stack."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, (dict, list)):
+            deepest = max(deepest, depth + 1)
+            if deepest > MAX_OVERRIDE_DEPTH:
+                break
+            stack.extend((child, depth + 1) for child in (node.values() if isinstance(node, dict) else node))
+    return deepest
 
 
 class JobRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dataset_id: str
     algorithm: str = Field("drop", description="drop | mopo | mbpo")
@@ -26,17 +43,23 @@ class JobRequest(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1)
     max_runtime_s: int | None = Field(None, ge=5, le=30 * 24 * 3600, description="time limit of one attempt")
 
+    @field_validator("overrides")
+    @classmethod
+    def _shallow(cls, overrides: dict[str, Any]) -> dict[str, Any]:
+        if _depth(overrides) > MAX_OVERRIDE_DEPTH:
+            raise ValueError(f"nested more than {MAX_OVERRIDE_DEPTH} levels deep")
+        return overrides
+
 
 def _invalid(code: str, detail: str, field: str) -> Problem:
     return Problem(422, code, detail, errors=[{"field": field, "message": detail}])
 
 
-def build(req: JobRequest, dataset: Dataset) -> tuple[str, dict]:
-    """(env name, config as JSON) for this request on this dataset."""
-    from drop_engine.config import ConfigError, build_config
+def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, dict]:
+    """(env name, config as JSON) for this request on this dataset, within the server's limits on a job."""
+    from drop_engine.config import PRESETS, ConfigError, build_config
     from drop_engine.envs import get_env
-
-    from drop_engine.config import PRESETS
+    from drop_engine.resources import DataShape
 
     if req.algorithm not in ALGORITHMS:
         raise _invalid("unknown_algorithm", f"algorithm: {req.algorithm!r} is not one of {', '.join(ALGORITHMS)}",
@@ -65,4 +88,5 @@ def build(req: JobRequest, dataset: Dataset) -> tuple[str, dict]:
         message = str(exc)
         field = message.split(":", 1)[0] if ":" in message else "overrides"
         raise _invalid("invalid_config", message, field) from None
+    joblimits.check(config, DataShape(dataset.report["transitions"], dataset.obs_dim, dataset.act_dim), settings)
     return spec.name, config.model_dump(mode="json")

@@ -7,7 +7,7 @@ from http import HTTPStatus
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .storage_errors import storage_failure
@@ -39,6 +39,7 @@ def problem_response(status: int, code: str, detail: str, headers: dict | None =
 class FieldError(BaseModel):
     field: str
     message: str
+    limit: int | None = Field(None, description="the server's limit the value exceeds (code job_over_limit)")
 
 
 class ProblemBody(BaseModel):

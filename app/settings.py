@@ -9,7 +9,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="DROP_", extra="ignore", allow_inf_nan=False)
 
     data_dir: Path = Field(Path("data"), description="datasets, job runs, trained dynamics models, broker folders, "
                                                 "SQLite file")
@@ -19,6 +19,12 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(2 * 1024**3, ge=1)
     max_active_jobs_per_owner: int = Field(20, ge=1, description="queued + running + cancelling jobs; more get 429")
     max_stored_bytes_per_owner: int = Field(20 * 1024**3, ge=1, description="sum of an owner's dataset uploads; 413")
+    # Limits on one job, against the engine's estimate (drop_engine/resources.py); past any, creating it is a 422.
+    # The defaults admit every preset, `paper` included, on a 2-million-row dataset.
+    max_job_memory_bytes: int = Field(8 * 1024**3, ge=1, description="estimated peak memory of one job")
+    max_job_sac_updates: int = Field(5_000_000, ge=1, description="epochs x steps_per_epoch of one job")
+    max_job_metric_rows: int = Field(1_000_000, ge=1, description="metric rows one job may record")
+    max_job_eval_episodes: int = Field(100, ge=1, description="episodes per evaluation, each a MuJoCo env held open")
     auth_disabled: bool = Field(False, description="single-user local mode: every request is the 'local' owner")
     worker_threads: int | None = Field(None, ge=1, description="torch threads per job")
     worker_concurrency: int = Field(1, ge=1, description="jobs at once per `drop worker`")

@@ -6,7 +6,7 @@ the result, so a bad override is rejected before any work starts.
 """
 from __future__ import annotations
 
-from typing import Any, Literal, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -20,23 +20,40 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    """Unknown keys and non-finite numbers are refused: a NaN or infinite setting would only surface as a NaN loss."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+
+# Upper bounds: generous enough for a power user of the CLI, finite so that no value asks for the impossible. The
+# service refuses jobs over its own, tighter limits on the whole run (app/joblimits.py).
+Width = Annotated[int, Field(ge=1, le=4096)]
+Hidden = Annotated[tuple[Width, ...], Field(max_length=8)]
+BatchSize = Annotated[int, Field(ge=1, le=65_536)]
+LearningRate = Annotated[float, Field(gt=0, le=1)]
+Epochs = Annotated[int, Field(ge=1, le=100_000)]
+Steps = Annotated[int, Field(ge=0, le=1_000_000)]
+Weight = Annotated[float, Field(ge=0, le=1_000)]
+Horizon = Annotated[int, Field(ge=1, le=1_000)]
+ClipBound = Annotated[float, Field(le=1e6)]
 
 
 class DynamicsConfig(_Strict):
-    members: int = Field(7, ge=1)
-    elites: int = Field(5, ge=1)
-    hidden: int = Field(200, ge=1)
-    layers: int = Field(4, ge=1)
-    lr: float = Field(1e-3, gt=0)
-    batch_size: int = Field(256, ge=1)
+    members: int = Field(7, ge=1, le=64)
+    elites: int = Field(5, ge=1, le=64)
+    hidden: Width = 200
+    layers: int = Field(4, ge=1, le=8)
+    lr: LearningRate = 1e-3
+    batch_size: BatchSize = 256
     holdout_ratio: float = Field(0.2, ge=0, lt=1)
-    max_holdout: int = Field(1000, ge=1)
-    patience: int = Field(5, ge=1, description="epochs with no member improving by >1% before stopping")
-    max_epochs: int | None = Field(None, ge=1)
-    max_seconds: float | None = Field(None, gt=0, description="wall-clock cap; makes the model, and so the run, "
-                                      "depend on how busy the machine is (no preset sets it)")
-    weight_decay: tuple[float, ...] = (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4)
+    max_holdout: int = Field(1000, ge=1, le=1_000_000)
+    patience: int = Field(5, ge=1, le=1_000, description="epochs with no member improving by >1% before stopping")
+    max_epochs: Epochs | None = None
+    max_seconds: float | None = Field(None, gt=0, le=30 * 24 * 3600, description="wall-clock cap; makes the model, "
+                                      "and so the run, depend on how busy the machine is (no preset sets it)")
+    weight_decay: tuple[Annotated[float, Field(ge=0, le=1)], ...] = Field(
+        (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4), min_length=1, max_length=16,
+        description="per hidden layer (the second-to-last repeats), the last for the heads")
 
     @model_validator(mode="after")
     def _check(self) -> "DynamicsConfig":
@@ -46,52 +63,46 @@ class DynamicsConfig(_Strict):
 
 
 class SACConfig(_Strict):
-    hidden: tuple[int, ...] = (256, 256)
-    actor_lr: float = Field(3e-4, gt=0)
-    critic_lr: float = Field(3e-4, gt=0)
-    alpha_lr: float = Field(3e-4, gt=0)
+    hidden: Hidden = (256, 256)
+    actor_lr: LearningRate = 3e-4
+    critic_lr: LearningRate = 3e-4
+    alpha_lr: LearningRate = 3e-4
     gamma: float = Field(0.99, gt=0, lt=1)
     tau: float = Field(5e-3, gt=0, le=1)
-    batch_size: int = Field(256, ge=1)
+    batch_size: BatchSize = 256
     real_ratio: float = Field(0.05, ge=0, le=1)
-    target_entropy: float | None = Field(None, description="default -|A|")
-    bc_weight: float = Field(0.0, ge=0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
+    target_entropy: float | None = Field(None, ge=-1_000, le=1_000, description="default -|A|")
+    bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
                              "actor minimises (alpha logp - Q)/mean|Q| + w * mean (tanh(mu(s)) - a)^2 on a real batch; "
                              "0 is plain SAC (the paper)")
 
 
 class RolloutConfig(_Strict):
-    batch_size: int = Field(50_000, ge=1, description="start states per epoch")
-    horizon: int = Field(5, ge=1)
-    retain_epochs: int = Field(5, ge=1)
+    batch_size: int = Field(50_000, ge=1, le=1_000_000, description="start states per epoch")
+    horizon: Horizon = 5
+    retain_epochs: int = Field(5, ge=1, le=1_000)
 
 
 class DiceConfig(_Strict):
-    hidden: tuple[int, ...] = (64, 64)
-    lr: float = Field(1e-4, gt=0)
-    lam: float = Field(0.1, ge=0, description="normalisation constraint weight (lambda)")
-    batch_size: int = Field(256, ge=1)
-    pretrain_steps: int = Field(400, ge=0)
-    steps_per_epoch: int = Field(400, ge=0)
+    hidden: Hidden = (64, 64)
+    lr: LearningRate = 1e-4
+    lam: Weight = Field(0.1, description="normalisation constraint weight (lambda)")
+    batch_size: BatchSize = 256
+    pretrain_steps: Steps = 400
+    steps_per_epoch: Steps = 400
     positive: bool = Field(False, description="tau = softplus(net), never negative; False is the paper's linear tau")
-    discount: float | Literal["sac", "horizon"] = Field(
+    discount: Annotated[float, Field(ge=0, lt=1)] | Literal["sac", "horizon"] = Field(
         "sac", description="the occupancy's discount: 'sac' uses SAC's gamma (the paper); 'horizon' uses (h-1)/(h+1), "
                            "whose mean step (h-1)/2 is that of the h-step model rollouts the penalty is applied to")
 
-    @model_validator(mode="after")
-    def _check(self) -> "DiceConfig":
-        if isinstance(self.discount, float) and not 0 <= self.discount < 1:
-            raise ValueError(f"discount must be in [0, 1), got {self.discount}")
-        return self
-
 
 class PenaltyConfig(_Strict):
-    eta: float = Field(1.0, ge=0, description="DROP penalty coefficient")
+    eta: Weight = Field(1.0, description="DROP penalty coefficient")
     g: PenaltyFn = "log"
-    clip: tuple[float, float] | None = (0.01, 10.0)
+    clip: tuple[ClipBound, ClipBound] | None = (0.01, 10.0)
     bonus: bool = Field(True, description="let a ratio below 1 raise the reward, as the official code does")
-    mopo_lambda: float = Field(1.0, ge=0)
-    mopo_horizon: int = Field(5, ge=1)
+    mopo_lambda: Weight = 1.0
+    mopo_horizon: Horizon = 5
 
     @model_validator(mode="after")
     def _check(self) -> "PenaltyConfig":
@@ -106,17 +117,17 @@ class TrainConfig(_Strict):
     env_version: Literal["v4", "v5"] = "v4"
     task: str | None = Field(None, description="dataset kind, e.g. 'medium', selects the per-dataset settings")
     preset: Literal["paper", "cpu", "smoke"] = "cpu"
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, lt=2**32)
     device: str = "cpu"
-    threads: int | None = Field(None, ge=1)
-    epochs: int = Field(200, ge=1)
-    steps_per_epoch: int = Field(1000, ge=1)
-    eval_every: int = Field(10, ge=1)
-    eval_episodes: int = Field(10, ge=1)
-    checkpoint_every: int = Field(10, ge=1)
-    keep_checkpoints: int = Field(2, ge=1)
+    threads: int | None = Field(None, ge=1, le=256)
+    epochs: Epochs = 200
+    steps_per_epoch: int = Field(1000, ge=1, le=1_000_000)
+    eval_every: Epochs = 10
+    eval_episodes: int = Field(10, ge=1, le=1_000)
+    checkpoint_every: Epochs = 10
+    keep_checkpoints: int = Field(2, ge=1, le=100)
     normalize_obs: bool = True
-    log_every: int = Field(250, ge=1, description="SAC steps between metric reports")
+    log_every: int = Field(250, ge=1, le=1_000_000, description="SAC steps between metric reports")
     dynamics: DynamicsConfig = DynamicsConfig()
     sac: SACConfig = SACConfig()
     rollout: RolloutConfig = RolloutConfig()
@@ -243,7 +254,21 @@ def build_config(
     try:
         return TrainConfig.model_validate(merged)
     except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or 'config'}: {err['msg']}" for err in exc.errors()
-        )
+        problems = "; ".join(f"{_field_path(err['loc']) or 'config'}: {err['msg']}" for err in exc.errors())
         raise ConfigError(problems) from None
+
+
+def _field_path(loc: tuple[int | str, ...]) -> str:
+    """The dotted field an error is about, e.g. `dice.discount` or `sac.hidden.0`: pydantic's loc also holds the tags
+    of the union branches it tried (`dice.discount.float`), which name no field."""
+    model: type[BaseModel] | None = TrainConfig
+    parts = []
+    for part in loc:
+        if model is not None:
+            parts.append(str(part))
+            field = model.model_fields.get(str(part))
+            annotation = field.annotation if field is not None else None
+            model = annotation if isinstance(annotation, type) and issubclass(annotation, BaseModel) else None
+        elif isinstance(part, int):
+            parts.append(str(part))
+    return ".".join(parts)

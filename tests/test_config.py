@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import PRESETS, ConfigError, build_config
+from drop_engine.config import PRESETS, ConfigError, TrainConfig, build_config
 
 
 def test_paper_preset_uses_official_dataset_settings():
@@ -55,7 +55,7 @@ def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
 
 def test_dice_discount_override_is_checked():
     assert build_config("drop", "hopper", "cpu", overrides={"dice.discount": 0.5}).dice_discount == 0.5
-    with pytest.raises(ConfigError, match="discount must be in"):
+    with pytest.raises(ConfigError, match="dice.discount: Input should be less than 1"):
         build_config("drop", "hopper", "cpu", overrides={"dice.discount": 1.5})
 
 
@@ -65,3 +65,62 @@ def test_presets_never_cap_dynamics_by_wall_clock(preset):
     dynamics = build_config("drop", "hopper", preset).dynamics
     assert dynamics.max_seconds is None
     assert dynamics.max_epochs is not None or preset == "paper"
+
+
+def _unbounded(schema: dict, defs: dict, path: str):
+    """Paths of the numbers and sequences in a JSON schema that have no upper bound."""
+    if "$ref" in schema:
+        schema = defs[schema["$ref"].rsplit("/", 1)[-1]]
+    for branch in schema.get("anyOf", []):
+        yield from _unbounded(branch, defs, path)
+    kind = schema.get("type")
+    if kind in ("integer", "number") and not {"maximum", "exclusiveMaximum"} & schema.keys():
+        yield path
+    if kind == "array":
+        if "maxItems" not in schema:
+            yield f"{path} (length)"
+        items = schema.get("prefixItems", []) + ([schema["items"]] if isinstance(schema.get("items"), dict) else [])
+        for item in items:
+            yield from _unbounded(item, defs, f"{path}[]")
+    for name, prop in schema.get("properties", {}).items():
+        yield from _unbounded(prop, defs, f"{path}.{name}".lstrip("."))
+
+
+def test_every_number_and_tuple_of_every_config_is_bounded_above():
+    schema = TrainConfig.model_json_schema()
+    assert list(_unbounded(schema, schema.get("$defs", {}), "")) == []
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"rollout.batch_size": 10**9}, "rollout.batch_size: Input should be less than or equal to 1000000"),
+    ({"sac.hidden": [256, 10**6]}, "sac.hidden.1: Input should be less than or equal to 4096"),
+    ({"dynamics.layers": 100}, "dynamics.layers: Input should be less than or equal to 8"),
+    ({"sac.batch_size": 10**7}, "sac.batch_size: Input should be less than or equal to 65536"),
+    ({"eval_episodes": 10**6}, "eval_episodes: Input should be less than or equal to 1000"),
+    ({"epochs": 10**9}, "epochs: Input should be less than or equal to 100000"),
+    ({"log_every": 10**12}, "log_every: Input should be less than or equal to 1000000"),
+    ({"dice.hidden": [8] * 50}, "dice.hidden: Tuple should have at most 8 items"),
+    ({"seed": 2**32}, "seed: Input should be less than 4294967296"),
+])
+def test_absurd_values_are_refused_by_name(overrides, message):
+    with pytest.raises(ConfigError) as info:
+        build_config("drop", "hopper", "cpu", overrides=overrides)
+    assert message in str(info.value)
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize("overrides, field", [
+    ({"sac.actor_lr": NAN}, "sac.actor_lr"),
+    ({"penalty.eta": INF}, "penalty.eta"),
+    ({"sac.target_entropy": -INF}, "sac.target_entropy"),
+    ({"dynamics.max_seconds": INF}, "dynamics.max_seconds"),
+    ({"penalty.clip": (0.01, INF)}, "penalty.clip.1"),
+    ({"dynamics.weight_decay": (1e-4, NAN)}, "dynamics.weight_decay.1"),
+    ({"dice.discount": NAN}, "dice.discount"),  # a union: named without pydantic's branch tag (`.float`)
+])
+def test_non_finite_numbers_are_refused_by_name(overrides, field):
+    with pytest.raises(ConfigError) as info:
+        build_config("drop", "hopper", "cpu", overrides=overrides)
+    assert str(info.value).startswith(f"{field}: Input should be a finite number")

@@ -48,7 +48,7 @@ def create_job(req: JobRequest, request: Request, response: Response,
             response.status_code = 200
             return serialize.job(existing)
     dataset = owned_dataset(s, owner, req.dataset_id, lock=True)
-    env, config = build(req, dataset)
+    env, config = build(req, dataset, settings)
     quotas.check_active_jobs(s, owner, settings)
     job = Job(id=new_id("job"), owner_id=owner, dataset_id=dataset.id, algorithm=config["algorithm"], env=env,
               preset=config["preset"], overrides=req.overrides, seed=req.seed, config=config, status="queued",
