@@ -6,9 +6,12 @@ import logging
 from fastapi import FastAPI
 
 from . import problems
-from .limits import BodyLimit
 from .db import make_engine, make_sessionmaker, schema_problem
-from .routers import datasets, health, jobs, outputs
+from .job_metrics import JobMetrics
+from .limits import BodyLimit
+from .logs import configure
+from .observe import ObserveRequests
+from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
 
 log = logging.getLogger("drop.api")
@@ -35,9 +38,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
+    app.state.job_metrics = JobMetrics(engine)
     app.state.celery = make_celery(settings)
     app.state.enqueue = lambda job_id, runtime: enqueue(app.state.celery, settings, job_id, runtime)
     problems.install(app)
-    for router in (health.router, datasets.router, jobs.router, outputs.router):
+    build = app.build_middleware_stack  # outside Starlette's error middleware: 500s get an id, and their log lines too
+    app.build_middleware_stack = lambda: ObserveRequests(build())
+    for router in (health.router, metrics.router, datasets.router, jobs.router, outputs.router):
         app.include_router(router)
     return app
+
+
+def served_app() -> FastAPI:
+    """The app as `drop api` and `drop serve` run it, built in each uvicorn process: logging from the settings first."""
+    settings = get_settings()
+    configure(settings.log_format, settings.log_level)
+    return create_app(settings)
