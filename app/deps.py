@@ -47,5 +47,7 @@ def _cursor(prefix: str):
 DatasetCursor = _cursor("ds")
 JobCursor = _cursor("job")
 Owner = Depends(current_owner)
-DB = Depends(session)
+# Closed as soon as the endpoint returns, before the response is sent: a streamed response (the event stream) must
+# not keep a pooled connection for its whole life.
+DB = Depends(session, scope="function")
 Config = Depends(settings)

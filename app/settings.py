@@ -37,6 +37,7 @@ class Settings(BaseSettings):
     log_format: Literal["json", "console"] = Field("json", description="JSON lines, or readable ('console', the "
                                                     "default under `drop serve`)")
     log_level: str = Field("INFO", pattern=r"^(?i:debug|info|warning|error|critical)$")
+    max_streams_per_owner: int = Field(20, ge=1, description="open event streams per owner per API process; 429 past")
 
     @property
     def sqlalchemy_url(self) -> str:

@@ -2,14 +2,15 @@
 learning curve and the trained policy."""
 from __future__ import annotations
 
-import asyncio
 import json
+import time
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Callable, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, StreamingResponse
+from starlette.background import BackgroundTask
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -42,27 +43,35 @@ def _events_after(factory, job_id: str, after: int, limit: int) -> tuple[list[di
     return items, status
 
 
-async def _stream(request: Request, job_id: str, after: int):
-    factory = request.app.state.sessions
-    idle = 0.0
-    while True:
-        items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
-        for item in items:
-            after = item["id"]
-            yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
-        if items:
-            idle = 0.0
-            continue
-        if status in FINAL_STATUSES or status is None:
-            yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
-            return
-        if await request.is_disconnected():
-            return
-        await asyncio.sleep(SSE_POLL_S)
-        idle += SSE_POLL_S
-        if idle >= SSE_KEEPALIVE_S:
-            idle = 0.0
-            yield ": keep-alive\n\n"
+async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
+    """Events after `after` until the job ends. Each read takes a pooled connection only for its query; in between the
+    stream waits for the job's next notification (PostgreSQL) or polls every SSE_POLL_S (SQLite, or listener down)."""
+    factory, waker = request.app.state.sessions, request.app.state.events
+    try:
+        with waker.subscribe(job_id) as topic:
+            quiet = 0.0
+            while True:
+                seen = topic.version
+                items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
+                for item in items:
+                    after = item["id"]
+                    yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
+                if items:
+                    quiet = 0.0
+                    continue
+                if status in FINAL_STATUSES or status is None:
+                    yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
+                    return
+                if await request.is_disconnected():
+                    return
+                began = time.monotonic()
+                await waker.wait(topic, seen, SSE_KEEPALIVE_S - quiet if waker.live else SSE_POLL_S)
+                quiet += time.monotonic() - began
+                if quiet >= SSE_KEEPALIVE_S:
+                    quiet = 0.0
+                    yield ": keep-alive\n\n"
+    finally:
+        release()
 
 
 @router.get("/events", response_model=Page[EventOut],
@@ -74,8 +83,12 @@ def job_events(job_id: str, request: Request, after: After = 0, limit: int = Que
     if "text/event-stream" in request.headers.get("accept", ""):
         last = request.headers.get("last-event-id", "")
         start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after
-        return StreamingResponse(_stream(request, job_id, start), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+        release = request.app.state.stream_slots.take(owner)
+        # The stream's own `finally` gives the slot back, and so does the background task in case the stream is
+        # never started (the client left first).
+        return StreamingResponse(_stream(request, job_id, start, release), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+                                 background=BackgroundTask(release))
     q = select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after).order_by(JobEvent.id)
     return serialize.fetch_page(s, q, serialize.event, limit)
 
