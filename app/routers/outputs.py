@@ -14,10 +14,10 @@ from starlette.background import BackgroundTask
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from drop_engine.plots import learning_curve
 from drop_engine.scores import Which
 
 from .. import serialize
-from ..curve import render
 from ..deps import DB, Config, Owner, owned_job
 from ..models import FINAL_STATUSES, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from ..problems import Problem
@@ -123,7 +123,7 @@ def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
 def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
     owned_job(s, owner, job_id)
     rows = list(s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id)))
-    png = render(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
+    png = learning_curve(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
     return Response(png, media_type="image/png")
 
 
