@@ -54,7 +54,8 @@ def list_tokens(factory: sessionmaker[Session], owner: str | None = None) -> lis
 def revoke_token(factory: sessionmaker[Session], ref: str) -> Token:
     """Revoke the token with id `ref`, the one token whose id starts with `ref`, or the token `ref` itself.
 
-    The API looks tokens up on every request, so a revoked token is refused from the next request on.
+    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/token_cache.py), so a revoked
+    token is refused from that long after at the latest.
     """
     if not ref:
         raise TokenNotFound("give a token id, the start of one, or the token itself")
@@ -92,8 +93,13 @@ def current_owner(request: Request) -> str:
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         raise _unauthorized("send `Authorization: Bearer <token>`; create one with `drop token create --name NAME`")
-    with factory() as session:
-        row = session.scalar(select(Token).where(Token.token_hash == hash_token(token.strip()), Token.revoked_at.is_(None)))
-    if row is None:
-        raise _unauthorized("unknown or revoked token")
-    return row.owner_id
+    digest = hash_token(token.strip())
+    owner_id = state.tokens.get(digest)
+    if owner_id is None:
+        with factory() as session:
+            owner_id = session.scalar(select(Token.owner_id).where(Token.token_hash == digest,
+                                                                    Token.revoked_at.is_(None)))
+        if owner_id is None:
+            raise _unauthorized("unknown or revoked token")
+        state.tokens.put(digest, owner_id)
+    return owner_id

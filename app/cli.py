@@ -13,7 +13,10 @@ from typing import Iterator
 
 from drop_engine.cli import build_parser as engine_parser
 
+from .procs import SUPERVISOR_ENV
+
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
+GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
 
 
 def _settings():
@@ -95,7 +98,8 @@ def cmd_token_revoke(args: argparse.Namespace) -> int:
         except TokenNotFound as exc:
             print(f"drop: {exc}", file=sys.stderr)
             return 2
-        print(f"token {token.id} revoked at {iso(token.revoked_at)}; it is refused from now on")
+        print(f"token {token.id} revoked at {iso(token.revoked_at)}; the API refuses it within "
+              f"DROP_TOKEN_CACHE_S ({_settings().token_cache_s:g} s)")
         return 0
 
     return _with_sessions(run)
@@ -122,15 +126,28 @@ def _metrics_dir(workers: int) -> Iterator[None]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+@contextmanager
+def _supervising(workers: int) -> Iterator[None]:
+    """Worker processes learn their supervisor's pid, to die with it (app/procs.py)."""
+    if workers == 1:
+        yield
+        return
+    os.environ[SUPERVISOR_ENV] = str(os.getpid())
+    try:
+        yield
+    finally:
+        os.environ.pop(SUPERVISOR_ENV, None)
+
+
 def _run_api(settings, host: str, port: int, workers: int) -> int:
     import uvicorn
 
     if not _check_migrated(settings):
         return 2
-    with _metrics_dir(workers):
+    with _metrics_dir(workers), _supervising(workers):
         # Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours.
         uvicorn.run("app.main:served_app", factory=True, host=host, port=port, workers=workers, log_config=None,
-                    access_log=False)
+                    access_log=False, timeout_graceful_shutdown=GRACEFUL_S)
     return 0
 
 

@@ -15,9 +15,11 @@ from .job_metrics import JobMetrics
 from .limits import BodyLimit
 from .logs import configure
 from .observe import ObserveRequests
+from .procs import supervised
 from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
 from .stream_slots import StreamSlots
+from .token_cache import TokenCache
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20
@@ -47,6 +49,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.events = EventWaker()
     app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
     app.state.job_metrics = JobMetrics(engine)
+    app.state.tokens = TokenCache(settings.token_cache_s)
     app.state.celery = make_celery(settings)
     app.state.enqueue = lambda job_id, runtime: enqueue(app.state.celery, settings, job_id, runtime)
     problems.install(app)
@@ -59,6 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 def served_app() -> FastAPI:
     """The app as `drop api` and `drop serve` run it, built in each uvicorn process: logging from the settings first."""
+    supervised()
     settings = get_settings()
     configure(settings.log_format, settings.log_level)
     return create_app(settings)

@@ -38,6 +38,8 @@ class Settings(BaseSettings):
                                                     "default under `drop serve`)")
     log_level: str = Field("INFO", pattern=r"^(?i:debug|info|warning|error|critical)$")
     max_streams_per_owner: int = Field(20, ge=1, description="open event streams per owner per API process; 429 past")
+    token_cache_s: float = Field(5.0, ge=0, le=60, description="how long an API process trusts a token lookup: a "
+                                 "revoked token is refused within this; 0 looks up every request")
 
     @property
     def sqlalchemy_url(self) -> str:
