@@ -5,6 +5,7 @@ import hashlib
 import secrets
 
 from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -78,16 +79,24 @@ def _unauthorized(detail: str) -> Problem:
     return Problem(401, "unauthorized", detail, headers={"WWW-Authenticate": "Bearer"})
 
 
-def current_owner(request: Request) -> str:
-    """FastAPI dependency: the owner id of this request."""
+def _local_owner(factory: sessionmaker[Session]) -> str:
+    with factory() as session, session.begin():
+        return get_or_create_owner(session, LOCAL_OWNER).id
+
+
+def _lookup(factory: sessionmaker[Session], digest: str) -> str | None:
+    with factory() as session:
+        return session.scalar(select(Token.owner_id).where(Token.token_hash == digest, Token.revoked_at.is_(None)))
+
+
+async def current_owner(request: Request) -> str:
+    """FastAPI dependency: the owner id of this request. Async, so a remembered token costs no threadpool hop; the
+    database is only asked in the threadpool."""
     state = request.app.state
-    factory = state.sessions
     if state.settings.auth_disabled:
         owner_id = getattr(state, "local_owner_id", None)
         if owner_id is None:
-            with factory() as session, session.begin():
-                owner_id = get_or_create_owner(session, LOCAL_OWNER).id
-            state.local_owner_id = owner_id
+            owner_id = state.local_owner_id = await run_in_threadpool(_local_owner, state.sessions)
         return owner_id
     header = request.headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
@@ -96,9 +105,7 @@ def current_owner(request: Request) -> str:
     digest = hash_token(token.strip())
     owner_id = state.tokens.get(digest)
     if owner_id is None:
-        with factory() as session:
-            owner_id = session.scalar(select(Token.owner_id).where(Token.token_hash == digest,
-                                                                    Token.revoked_at.is_(None)))
+        owner_id = await run_in_threadpool(_lookup, state.reader, digest)
         if owner_id is None:
             raise _unauthorized("unknown or revoked token")
         state.tokens.put(digest, owner_id)

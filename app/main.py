@@ -9,7 +9,7 @@ from typing import AsyncIterator
 from fastapi import FastAPI
 
 from . import problems
-from .db import make_engine, make_sessionmaker, schema_problem
+from .db import make_engine, make_reader, make_sessionmaker, schema_problem
 from .event_bus import EventWaker, listen
 from .job_metrics import JobMetrics
 from .limits import BodyLimit
@@ -46,6 +46,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
+    app.state.reader = make_reader(engine)
     app.state.events = EventWaker()
     app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
     app.state.job_metrics = JobMetrics(engine)
