@@ -34,6 +34,8 @@ def configure(fmt: LogFormat = "json", level: str = "INFO") -> None:
     root = logging.getLogger()
     root.handlers = [handler]
     root.setLevel(level.upper())
-    for name in ("uvicorn", "uvicorn.error", "uvicorn.access", "celery"):
+    for name in ("uvicorn", "uvicorn.error", "celery"):
         logger = logging.getLogger(name)
         logger.handlers, logger.propagate = [], True
+    access = logging.getLogger("uvicorn.access")  # the API writes its own access line, with the request id
+    access.handlers, access.propagate = [], False

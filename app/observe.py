@@ -17,6 +17,7 @@ from .metrics import HTTP_LATENCY, HTTP_REQUESTS
 
 HEADER = b"x-request-id"
 SANE_ID = re.compile(rb"^[A-Za-z0-9._:-]{1,128}$")
+METHODS = frozenset(("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"))
 UNMATCHED = "unmatched"  # any path no route serves: one label, however many paths are probed
 access = logging.getLogger("drop.access")
 
@@ -36,6 +37,16 @@ def route_template(scope: Scope) -> str:
 class ObserveRequests:
     def __init__(self, app: ASGIApp):
         self.app = app
+        self._children: dict[tuple[str, str, int], tuple] = {}
+
+    def _series(self, method: str, route: str, status: int) -> tuple:
+        """The labelled counter and histogram, looked up once per label set: `labels()` costs more than `inc()`."""
+        key = (method, route, status)
+        found = self._children.get(key)
+        if found is None:
+            found = self._children[key] = (HTTP_REQUESTS.labels(method, route, status),
+                                           HTTP_LATENCY.labels(method, route, status))
+        return found
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -57,8 +68,9 @@ class ObserveRequests:
             finally:
                 status = answered.get("status", 500)  # no answer started: the error middleware answers 500
                 seconds = answered.get("seconds", time.perf_counter() - start)
-                method, route = scope["method"], route_template(scope)
-                HTTP_REQUESTS.labels(method, route, status).inc()
-                HTTP_LATENCY.labels(method, route, status).observe(seconds)
+                method = scope["method"] if scope["method"] in METHODS else "other"  # clients choose methods too
+                count, latency = self._series(method, route_template(scope), status)
+                count.inc()
+                latency.observe(seconds)
                 access.info("request", extra={"method": method, "path": scope["path"], "status": status,
                                               "ms": round(seconds * 1000, 1)})
