@@ -5,6 +5,7 @@ import hashlib
 import secrets
 
 from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -54,7 +55,8 @@ def list_tokens(factory: sessionmaker[Session], owner: str | None = None) -> lis
 def revoke_token(factory: sessionmaker[Session], ref: str) -> Token:
     """Revoke the token with id `ref`, the one token whose id starts with `ref`, or the token `ref` itself.
 
-    The API looks tokens up on every request, so a revoked token is refused from the next request on.
+    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/token_cache.py), so a revoked
+    token is refused from that long after at the latest.
     """
     if not ref:
         raise TokenNotFound("give a token id, the start of one, or the token itself")
@@ -77,23 +79,34 @@ def _unauthorized(detail: str) -> Problem:
     return Problem(401, "unauthorized", detail, headers={"WWW-Authenticate": "Bearer"})
 
 
-def current_owner(request: Request) -> str:
-    """FastAPI dependency: the owner id of this request."""
+def _local_owner(factory: sessionmaker[Session]) -> str:
+    with factory() as session, session.begin():
+        return get_or_create_owner(session, LOCAL_OWNER).id
+
+
+def _lookup(factory: sessionmaker[Session], digest: str) -> str | None:
+    with factory() as session:
+        return session.scalar(select(Token.owner_id).where(Token.token_hash == digest, Token.revoked_at.is_(None)))
+
+
+async def current_owner(request: Request) -> str:
+    """FastAPI dependency: the owner id of this request. Async, so a remembered token costs no threadpool hop; the
+    database is only asked in the threadpool."""
     state = request.app.state
-    factory = state.sessions
     if state.settings.auth_disabled:
         owner_id = getattr(state, "local_owner_id", None)
         if owner_id is None:
-            with factory() as session, session.begin():
-                owner_id = get_or_create_owner(session, LOCAL_OWNER).id
-            state.local_owner_id = owner_id
+            owner_id = state.local_owner_id = await run_in_threadpool(_local_owner, state.sessions)
         return owner_id
     header = request.headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         raise _unauthorized("send `Authorization: Bearer <token>`; create one with `drop token create --name NAME`")
-    with factory() as session:
-        row = session.scalar(select(Token).where(Token.token_hash == hash_token(token.strip()), Token.revoked_at.is_(None)))
-    if row is None:
-        raise _unauthorized("unknown or revoked token")
-    return row.owner_id
+    digest = hash_token(token.strip())
+    owner_id = state.tokens.get(digest)
+    if owner_id is None:
+        owner_id = await run_in_threadpool(_lookup, state.reader, digest)
+        if owner_id is None:
+            raise _unauthorized("unknown or revoked token")
+        state.tokens.put(digest, owner_id)
+    return owner_id

@@ -3,11 +3,20 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
+from contextlib import contextmanager
+from typing import Iterator
 
 from drop_engine.cli import build_parser as engine_parser
+
+from .procs import SUPERVISOR_ENV
+
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
+GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
 
 
 def _settings():
@@ -89,40 +98,74 @@ def cmd_token_revoke(args: argparse.Namespace) -> int:
         except TokenNotFound as exc:
             print(f"drop: {exc}", file=sys.stderr)
             return 2
-        print(f"token {token.id} revoked at {iso(token.revoked_at)}; it is refused from now on")
+        print(f"token {token.id} revoked at {iso(token.revoked_at)}; the API refuses it within "
+              f"DROP_TOKEN_CACHE_S ({_settings().token_cache_s:g} s)")
         return 0
 
     return _with_sessions(run)
 
 
-def _run_api(host: str, port: int) -> int:
+def default_api_workers() -> int:
+    """One API process per core this process may use, up to 8: the API is async, so more would only contend."""
+    return max(1, min(len(os.sched_getaffinity(0)), 8))
+
+
+@contextmanager
+def _metrics_dir(workers: int) -> Iterator[None]:
+    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see app/metrics.py): a
+    fresh folder for this run unless the operator named one. Set before any process imports prometheus_client."""
+    if workers == 1 or os.environ.get(MULTIPROC_ENV):
+        yield
+        return
+    folder = tempfile.mkdtemp(prefix="drop-metrics-")
+    os.environ[MULTIPROC_ENV] = folder
+    try:
+        yield
+    finally:
+        os.environ.pop(MULTIPROC_ENV, None)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextmanager
+def _supervising(workers: int) -> Iterator[None]:
+    """Worker processes learn their supervisor's pid, to die with it (app/procs.py)."""
+    if workers == 1:
+        yield
+        return
+    os.environ[SUPERVISOR_ENV] = str(os.getpid())
+    try:
+        yield
+    finally:
+        os.environ.pop(SUPERVISOR_ENV, None)
+
+
+def _run_api(settings, host: str, port: int, workers: int) -> int:
     import uvicorn
 
-    from .main import NotMigrated, create_app
-
-    try:
-        app = create_app(_settings())
-    except NotMigrated as exc:
-        print(f"drop: {exc}", file=sys.stderr)
+    if not _check_migrated(settings):
         return 2
-    uvicorn.run(app, host=host, port=port, log_level="info")
+    with _metrics_dir(workers), _supervising(workers):
+        # Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours.
+        uvicorn.run("app.main:served_app", factory=True, host=host, port=port, workers=workers, log_config=None,
+                    access_log=False, timeout_graceful_shutdown=GRACEFUL_S)
     return 0
 
 
+def _configure_logs(settings, level: str | None = None) -> None:
+    from .logs import configure
+
+    configure(settings.log_format, level or settings.log_level)
+
+
 def cmd_api(args: argparse.Namespace) -> int:
-    _log_to_stderr("INFO")
-    return _run_api(args.host, args.port)
-
-
-def _log_to_stderr(level: str) -> None:
-    import logging
-
-    logging.basicConfig(level=level.upper(), format="[%(asctime)s: %(levelname)s/%(name)s] %(message)s")
+    settings = _settings()
+    _configure_logs(settings)
+    return _run_api(settings, args.host, args.port, args.workers or default_api_workers())
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    _log_to_stderr(args.loglevel)
     settings = _settings()
+    _configure_logs(settings, args.loglevel)
     settings.ensure_dirs()
     if not _check_migrated(settings):
         return 2
@@ -139,6 +182,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Embedded single-machine mode: migrate, start one worker process, then serve the API in this one."""
     if not args.auth:
         os.environ["DROP_AUTH_DISABLED"] = "true"
+    os.environ.setdefault("DROP_LOG_FORMAT", "console")  # a person reads it; DROP_LOG_FORMAT=json for a collector
     code = cmd_db_upgrade(args)
     if code:
         return code
@@ -147,7 +191,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
           f"API on http://{args.host}:{args.port}", flush=True)
     worker = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--loglevel", "WARNING"], env=os.environ.copy())
     try:
-        return _run_api(args.host, args.port)
+        _configure_logs(settings)
+        return _run_api(settings, args.host, args.port, 1)
     finally:
         worker.send_signal(signal.SIGTERM)
         try:
@@ -169,6 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("api", help="the HTTP API alone (production: DROP_DATABASE_URL, DROP_BROKER_URL)")
     p.add_argument("--host", default="0.0.0.0")
     p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"API processes (default: one per core, at most 8; here {default_api_workers()})")
     p.set_defaults(func=cmd_api)
 
     p = sub.add_parser("worker", help="a Celery worker that runs training jobs")

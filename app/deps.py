@@ -5,7 +5,7 @@ from typing import Annotated, Iterator
 
 from fastapi import Depends, Query, Request
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from .auth import current_owner
 from .ids import id_pattern, is_id
@@ -33,7 +33,9 @@ def owned_dataset(s: Session, owner_id: str, dataset_id: str, lock: bool = False
 
 
 def owned_job(s: Session, owner_id: str, job_id: str) -> Job:
-    row = s.scalar(select(Job).where(Job.id == job_id, Job.owner_id == owner_id)) if is_id(job_id, "job") else None
+    # The API never shows a job's `result` (the engine's full report), so it is not read.
+    q = select(Job).where(Job.id == job_id, Job.owner_id == owner_id).options(defer(Job.result))
+    row = s.scalar(q) if is_id(job_id, "job") else None
     if row is None:
         raise Problem(404, "not_found", f"job {job_id} not found")
     return row
@@ -47,5 +49,7 @@ def _cursor(prefix: str):
 DatasetCursor = _cursor("ds")
 JobCursor = _cursor("job")
 Owner = Depends(current_owner)
-DB = Depends(session)
+# Closed as soon as the endpoint returns, before the response is sent: a streamed response (the event stream) must
+# not keep a pooled connection for its whole life.
+DB = Depends(session, scope="function")
 Config = Depends(settings)

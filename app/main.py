@@ -1,15 +1,25 @@
 """The FastAPI application factory; refuses to start on a database that is not at the newest migration."""
 from __future__ import annotations
 
+import asyncio
 import logging
+from contextlib import asynccontextmanager, suppress
+from typing import AsyncIterator
 
 from fastapi import FastAPI
 
 from . import problems
+from .db import make_engine, make_reader, make_sessionmaker, schema_problem
+from .event_bus import EventWaker, listen
+from .job_metrics import JobMetrics
 from .limits import BodyLimit
-from .db import make_engine, make_sessionmaker, schema_problem
-from .routers import datasets, health, jobs, outputs
+from .logs import configure
+from .observe import ObserveRequests
+from .procs import supervised
+from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
+from .stream_slots import StreamSlots
+from .token_cache import TokenCache
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20
@@ -30,14 +40,47 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         engine.dispose()
         raise NotMigrated(reason)
     # JSON bodies are small; only the dataset upload may be large, and it enforces its own limit while streaming.
-    app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)")
+    app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
+                  lifespan=_lifespan)
     app.add_middleware(BodyLimit, limit=JSON_BODY_LIMIT, exempt={("POST", "/v1/datasets")})
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
+    app.state.reader = make_reader(engine)
+    app.state.events = EventWaker()
+    app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
+    app.state.job_metrics = JobMetrics(engine)
+    app.state.tokens = TokenCache(settings.token_cache_s)
     app.state.celery = make_celery(settings)
     app.state.enqueue = lambda job_id, runtime: enqueue(app.state.celery, settings, job_id, runtime)
     problems.install(app)
-    for router in (health.router, datasets.router, jobs.router, outputs.router):
+    build = app.build_middleware_stack  # outside Starlette's error middleware: 500s get an id, and their log lines too
+    app.build_middleware_stack = lambda: ObserveRequests(build())
+    for router in (health.router, metrics.router, datasets.router, jobs.router, outputs.router):
         app.include_router(router)
     return app
+
+
+def served_app() -> FastAPI:
+    """The app as `drop api` and `drop serve` run it, built in each uvicorn process: logging from the settings first."""
+    supervised()
+    settings = get_settings()
+    configure(settings.log_format, settings.log_level)
+    return create_app(settings)
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """On PostgreSQL, listen for new job events while the app serves (see event_bus)."""
+    engine = app.state.engine
+    if engine.dialect.name != "postgresql":
+        yield
+        return
+    conninfo = engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
+    listener = asyncio.create_task(listen(conninfo, app.state.events))
+    try:
+        yield
+    finally:
+        listener.cancel()
+        with suppress(asyncio.CancelledError):
+            await listener

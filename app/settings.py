@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -38,6 +39,13 @@ class Settings(BaseSettings):
     validate_timeout_s: float = Field(300.0, gt=0)
     validate_memory_bytes: int = Field(8 * 1024**3, ge=256 * 1024**2, description="address-space cap of the validator")
     cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")
+    # Observability and API processes (issue 14)
+    log_format: Literal["json", "console"] = Field("json", description="JSON lines, or readable ('console', the "
+                                                    "default under `drop serve`)")
+    log_level: str = Field("INFO", pattern=r"^(?i:debug|info|warning|error|critical)$")
+    max_streams_per_owner: int = Field(20, ge=1, description="open event streams per owner per API process; 429 past")
+    token_cache_s: float = Field(5.0, ge=0, le=60, description="how long an API process trusts a token lookup: a "
+                                 "revoked token is refused within this; 0 looks up every request")
 
     @property
     def sqlalchemy_url(self) -> str:

@@ -23,14 +23,16 @@ import asyncio
 import json
 import os
 import platform
+import re
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterator
@@ -44,7 +46,7 @@ sys.path.insert(0, str(REPO))  # the service tests' helpers: throwaway database,
 
 from app.settings import Settings  # noqa: E402
 from tests.service.conftest import (REDIS_URL, database, free_port, kill_group, settings_env,  # noqa: E402
-                                    start_worker, wait_for_line)
+                                    start_worker, wait_for_line, wait_ready)
 
 MB = 1_000_000
 # Long enough to outlast any benchmark, small enough that epochs (and so events) come every few seconds.
@@ -52,6 +54,7 @@ JOB_OVERRIDES = {"epochs": 100_000, "steps_per_epoch": 100, "eval_every": 5, "ev
                  "checkpoint_every": 5, "log_every": 50, "dynamics.max_epochs": 5, "rollout.batch_size": 1000,
                  "dice.pretrain_steps": 50, "dice.steps_per_epoch": 50}
 JOB_OK = {"running", "succeeded"}
+NOTABLE = re.compile(r'WARNING|ERROR|CRITICAL|Traceback|Error:|"level": "(warning|error|critical)"')
 
 
 # ------------------------------------------------------------------------------------------------ data
@@ -73,29 +76,37 @@ def make_files(folder: Path, upload_mb: float) -> tuple[Path, Path]:
 
 
 # ------------------------------------------------------------------------------------------------ the service
+def api_command(repo: Path, port: int, workers: int) -> list[str]:
+    """`drop api` from `repo`; a checkout from before `--workers` existed runs one process anyway."""
+    command = [sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1", "--port", str(port)]
+    return command + (["--workers", str(workers)] if repo == REPO else [])
+
+
 @contextmanager
-def service(folder: Path, upload_bytes: int) -> Iterator[tuple[str, str, subprocess.Popen, subprocess.Popen]]:
-    """(API url, token, API process, worker process) on a fresh database and queue; all removed afterwards."""
+def service(folder: Path, upload_bytes: int, repo: Path = REPO,
+            api_workers: int = 1) -> Iterator[tuple[str, str, subprocess.Popen, subprocess.Popen]]:
+    """(API url, token, API process, worker process) on a fresh database and queue, the service's code from `repo`;
+    all removed afterwards."""
     with database() as url:
         queue = f"drop-bench-{secrets.token_hex(4)}"
         # Quotas far above what the benchmark sends, so none of its own traffic is refused.
         settings = Settings(data_dir=folder / "data", database_url=url, broker_url=REDIS_URL, queue=queue,
                             max_upload_bytes=max(2 * 1024**3, 2 * upload_bytes), max_stored_bytes_per_owner=2**50,
-                            max_active_jobs_per_owner=10_000, worker_threads=1)
+                            max_active_jobs_per_owner=10_000, max_streams_per_owner=10_000, worker_threads=1)
         env = settings_env(settings)
         drop = [sys.executable, "-m", "app.cli"]
         try:
-            subprocess.run([*drop, "db", "upgrade"], cwd=REPO, env=env, check=True, capture_output=True)
-            token = subprocess.run([*drop, "token", "create", "--name", "bench-load"], cwd=REPO, env=env, check=True,
+            subprocess.run([*drop, "db", "upgrade"], cwd=repo, env=env, check=True, capture_output=True)
+            token = subprocess.run([*drop, "token", "create", "--name", "bench-load"], cwd=repo, env=env, check=True,
                                    capture_output=True, text=True).stdout.strip()
             port = free_port()
             log = folder / "api.log"
             with log.open("ab") as out:
-                api = subprocess.Popen([*drop, "api", "--host", "127.0.0.1", "--port", str(port)], cwd=REPO, env=env,
+                api = subprocess.Popen(api_command(repo, port, api_workers), cwd=repo, env=env,
                                        stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
             try:
                 wait_for_line(log, "Application startup complete", api, 120)
-                worker = start_worker(settings, folder / "worker.log")
+                worker = start_worker(settings, folder / "worker.log", repo)
                 try:
                     yield f"http://127.0.0.1:{port}", token, api, worker
                 finally:
@@ -108,10 +119,82 @@ def service(folder: Path, upload_bytes: int) -> Iterator[tuple[str, str, subproc
                 client.delete(key)
 
 
+@contextmanager
+def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) -> Iterator[tuple[str, str, str]]:
+    """(API url, token, a job's path) of a `drop api` from `repo` with no worker at all, on a database of its own
+    holding one queued job: the API's own ceiling, nothing else running."""
+    from tests.service.private_api import tiny_npz
+
+    folder.mkdir(parents=True)
+    with database() as url:
+        settings = Settings(data_dir=folder / "data", database_url=url, broker_url=REDIS_URL,
+                            queue=f"drop-bench-idle-{secrets.token_hex(4)}")
+        env = {**settings_env(settings), **extra_env}
+        drop = [sys.executable, "-m", "app.cli"]
+        try:
+            subprocess.run([*drop, "db", "upgrade"], cwd=repo, env=env, check=True, capture_output=True)
+            token = subprocess.run([*drop, "token", "create", "--name", "bench-ceiling"], cwd=repo, env=env,
+                                   check=True, capture_output=True, text=True).stdout.strip()
+            port = free_port()
+            with (folder / "api.log").open("ab") as out:
+                api = subprocess.Popen(api_command(repo, port, workers), cwd=repo, env=env, stdout=out,
+                                       stderr=subprocess.STDOUT, start_new_session=True)
+            try:
+                base = f"http://127.0.0.1:{port}"
+                with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as http:
+                    wait_ready(http, api, folder / "api.log", 120)  # a quiet variant logs no startup line
+                    ds = http.post("/v1/datasets", content=tiny_npz(0)).raise_for_status().json()
+                    job = http.post("/v1/jobs", json={"dataset_id": ds["id"], "env": "hopper", "preset": "smoke"})
+                yield base, token, f"/v1/jobs/{job.raise_for_status().json()['id']}"
+            finally:
+                kill_group(api)
+        finally:
+            client = redis.Redis.from_url(REDIS_URL)
+            for key in client.scan_iter(f"{settings.queue}*"):
+                client.delete(key)
+
+
+def wrk(url: str, token: str, seconds: float, connections: int = 16) -> tuple[float, int]:
+    """(requests per second, answers other than 2xx) of wrk's closed loop on one URL."""
+    out = subprocess.run(["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "-H", f"Authorization: Bearer {token}",
+                          url], check=True, capture_output=True, text=True).stdout
+    bad = re.search(r"Non-2xx or 3xx responses: (\d+)", out)
+    return float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1)), int(bad.group(1)) if bad else 0
+
+
+def ceiling(args, folder: Path) -> dict:
+    """Requests per second of `GET /healthz` (the framework's own ceiling) and of `GET /v1/jobs/{id}` with auth, for
+    each variant of the API, with no worker running; the same client (wrk) and number of API processes throughout.
+    The measurements alternate in short rounds and each figure is the median of its rounds, so that a busy
+    machine's drift falls on all of them alike."""
+    if shutil.which("wrk") is None:
+        raise SystemExit("the ceiling needs wrk (apt-get install wrk), or --ceiling-rounds 0")
+    variants = [("this code", REPO, {}), ("this code, access log off", REPO, {"DROP_LOG_LEVEL": "WARNING"})]
+    if args.before_repo:
+        variants.append(("before", args.before_repo, {}))
+    with ExitStack() as stack:
+        targets = []
+        for i, (name, repo, extra) in enumerate(variants):
+            base, token, job = stack.enter_context(idle_api(folder / f"ceiling-{i}", repo, extra, args.api_workers))
+            targets += [(name, "GET /healthz", base + "/healthz", token), (name, "GET /v1/jobs/{id}", base + job, token)]
+        runs: dict[tuple[str, str], list[tuple[float, int]]] = defaultdict(list)
+        for r in range(args.ceiling_rounds):
+            print(f"  ceiling round {r + 1}/{args.ceiling_rounds}", flush=True)
+            for name, endpoint, url, token in targets:
+                runs[(name, endpoint)].append(wrk(url, token, args.ceiling_round_s))
+    table = {name: {endpoint: {"rps": round(float(np.median([r for r, _ in runs[(name, endpoint)]])), 1),
+                               "rounds": [r for r, _ in runs[(name, endpoint)]],
+                               "errors": sum(e for _, e in runs[(name, endpoint)])}
+                    for endpoint in ("GET /healthz", "GET /v1/jobs/{id}")} for name, _, _ in variants}
+    for row in table.values():
+        row["job_share_of_healthz"] = round(row["GET /v1/jobs/{id}"]["rps"] / row["GET /healthz"]["rps"], 3)
+    return {"api_workers": args.api_workers, "rounds": args.ceiling_rounds, "round_s": args.ceiling_round_s,
+            "connections": 16, "variants": table}
+
+
 def notable_lines(log: Path, most: int = 40) -> list[str]:
     """The warnings, errors and tracebacks a server process logged: the server's side of any problem."""
-    lines = [line for line in log.read_text(errors="replace").splitlines()
-             if any(word in line for word in ("WARNING", "ERROR", "CRITICAL", "Traceback", "Error:"))]
+    lines = [line for line in log.read_text(errors="replace").splitlines() if NOTABLE.search(line)]
     return lines[:most]
 
 
@@ -163,9 +246,15 @@ class Recorder:
 
 
 async def poll(client: httpx.AsyncClient, targets: list[tuple[str, str]], first: int, stop_at: float,
-               rec: Recorder) -> None:
+               rec: Recorder, rate: float) -> None:
+    """Back to back (rate 0: the closed-loop maximum), or `rate` requests a second on a fixed schedule (an offered
+    load: a slow answer does not slow the schedule, it only makes the next request late)."""
     i = first
+    next_at = time.monotonic() + (first % 10) / (10 * rate) if rate else 0.0  # spread the clients' phases
     while time.monotonic() < stop_at:
+        if rate:
+            await asyncio.sleep(max(0.0, next_at - time.monotonic()))
+            next_at += 1 / rate
         endpoint, url = targets[i % len(targets)]
         i += 1
         await rec.call(endpoint, client.get(url))
@@ -263,19 +352,21 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
                                                        "seed": 0, "overrides": JOB_OVERRIDES})
         job_id = response.raise_for_status().json()["id"]
         job_start = await wait_training(client, job_id)
+        seen = (await client.get(f"/v1/jobs/{job_id}/events", params={"limit": 1000})).json()["data"]
+        recent = seen[-1]["id"] if seen else 0  # pollers ask for what is new since, as a client following a job does
         print(f"job {job_id} at {progress(job_start['progress'])}; load for {args.seconds:.0f} s", flush=True)
 
         rec, uploads, delays = Recorder(), [], []
         rss_start, load_start = rss_mb(api.pid, "VmRSS"), os.getloadavg()
         targets = [("GET /v1/jobs/{id}", f"/v1/jobs/{job_id}"),
-                   ("GET /v1/jobs/{id}/events", f"/v1/jobs/{job_id}/events"),
+                   ("GET /v1/jobs/{id}/events?after=", f"/v1/jobs/{job_id}/events?after={recent}"),
                    ("GET /v1/jobs", "/v1/jobs"),
                    ("GET /v1/datasets/{id}", f"/v1/datasets/{dataset_id}")]
         began = time.monotonic()
         stop_at = began + args.seconds
         streams = [asyncio.create_task(stream_events(client, f"/v1/jobs/{job_id}/events", rec, delays))
                    for _ in range(args.sse)]
-        bounded = [asyncio.create_task(poll(client, targets, i, stop_at, rec)) for i in range(args.clients)]
+        bounded = [asyncio.create_task(poll(client, targets, i, stop_at, rec, args.rate)) for i in range(args.clients)]
         bounded += [asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads)) for _ in range(args.uploads)]
         try:
             while not all(t.done() for t in bounded):
@@ -322,7 +413,8 @@ def report(args, rec: Recorder, uploads: list[dict], delays: list[float], upload
         "commit": subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True,
                                  text=True).stdout.strip(),
         "settings": {"seconds": args.seconds, "clients": args.clients, "uploads": args.uploads,
-                     "upload_mb": args.upload_mb, "sse": args.sse},
+                     "upload_mb": args.upload_mb, "sse": args.sse, "rate": args.rate, "api_workers": args.api_workers,
+                     "service": "this code" if args.service_repo == REPO else str(args.service_repo)},
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "loadavg_start": load_start,
                     "loadavg_end": os.getloadavg(), "note": args.note},
         "endpoints": endpoints,
@@ -341,14 +433,38 @@ def progress(p: dict | None) -> str:
     return f"{p['phase']} epoch {p['epoch']} step {p['step']}/{p['total']}" if p else "-"
 
 
+def ceiling_markdown(c: dict) -> list[str]:
+    lines = [f"## Ceiling: the API alone, no worker ({c['api_workers']} API process(es), wrk with {c['connections']} "
+             f"connections, the median of {c['rounds']} alternating rounds of {c['round_s']:g} s)", "",
+             "| service | `GET /healthz` req/s | `GET /v1/jobs/{id}` req/s (auth, PostgreSQL) | share of healthz | "
+             "errors |", "|---|---|---|---|---|"]
+    for name, row in c["variants"].items():
+        health, job = row["GET /healthz"], row["GET /v1/jobs/{id}"]
+        lines.append(f"| {name} | {health['rps']} | {job['rps']} | {row['job_share_of_healthz']:.0%} | "
+                     f"{health['errors'] + job['errors']} |")
+    table = c["variants"]
+    quiet, here = table.get("this code, access log off"), table["this code"]
+    if quiet:
+        lines += ["", f"The access log line costs {1 - here['GET /healthz']['rps'] / quiet['GET /healthz']['rps']:.1%} "
+                  "of the healthz ceiling (this code against itself with DROP_LOG_LEVEL=WARNING)."]
+    if "before" in table:
+        lines.append(f"Against the code before (no request ids, metrics or JSON logs), healthz runs at "
+                     f"{here['GET /healthz']['rps'] / table['before']['GET /healthz']['rps']:.0%} and the job read at "
+                     f"{here['GET /v1/jobs/{id}']['rps'] / table['before']['GET /v1/jobs/{id}']['rps']:.0%}.")
+    return lines
+
+
 def markdown(r: dict) -> str:
     s, m, u = r["settings"], r["machine"], r["uploads"]
     load = " / ".join(f"{x:.2f}" for x in m["loadavg_start"])
     lines = [
         f"# Service under load ({r['date']}, {r['commit']})", "",
-        f"{s['clients']} clients polling for {s['seconds']:.0f} s, {s['uploads']} clients uploading "
-        f"{u['file_mb']:.0f} MB datasets one after another, {s['sse']} SSE streams of the job's events; one `drop api` "
-        "(uvicorn, one process), one `drop worker` training a `cpu`-preset DROP job, PostgreSQL and Redis on loopback.",
+        f"Service: {s['service']}. {s['clients']} clients polling for {s['seconds']:.0f} s "
+        + (f"at {s['rate']:g} requests/s each ({s['clients'] * s['rate']:g}/s offered)" if s["rate"] else
+           "back to back (the closed-loop maximum)")
+        + f", {s['uploads']} clients uploading {u['file_mb']:.0f} MB datasets one after another, {s['sse']} SSE "
+        f"streams of the job's events; `drop api` with {s['api_workers']} process(es), one `drop worker` training a "
+        "`cpu`-preset DROP job, PostgreSQL and Redis on loopback.",
         "",
         f"Machine: {m['cpus']} cores, {m['platform']}; load average (1/5/15 min) at start {load}. The clients run on "
         "the same cores, so their own CPU use is inside these latencies." + (f" {m['note']}" if m["note"] else ""),
@@ -369,8 +485,8 @@ def markdown(r: dict) -> str:
         f"{u['total_mb_s']} MB/s in total over {u['seconds']:.0f} s; sending the body took a median "
         f"{send.get('p50', '-')} s of each (the rest is validation and saving).",
         f"SSE: {sse['events']} new events delivered to {sse['clients']} streams, delay from creation to arrival "
-        f"p50 {sse['delay_ms'].get('p50', '-')} ms, p95 {sse['delay_ms'].get('p95', '-')} ms (the server polls "
-        "every 0.5 s).",
+        f"p50 {sse['delay_ms'].get('p50', '-')} ms, p95 {sse['delay_ms'].get('p95', '-')} ms, p99 "
+        f"{sse['delay_ms'].get('p99', '-')} ms.",
         f"API process RSS: {rss['start']} MB when the load began, peak {rss['peak']} MB (VmHWM).",
         f"Job: {job['status_end']} at the end; it went from {progress(job['progress_start'])} to "
         f"{progress(job['progress_end'])} during the load.",
@@ -378,6 +494,8 @@ def markdown(r: dict) -> str:
         "Problems: " + ("none." if not r["problems"] else ""),
     ]
     lines += [f"- {what}: {n}" for what, n in r["problems"].items()]
+    if r.get("ceiling"):
+        lines += ["", *ceiling_markdown(r["ceiling"])]
     logged = [f"- {name}: `{line}`" for name, found in r["server_log"].items() for line in found]
     if logged:
         lines += ["", "Warnings and errors the server processes logged:", *logged]
@@ -391,6 +509,16 @@ def main() -> int:
     parser.add_argument("--uploads", type=int, default=5, help="concurrent uploading clients")
     parser.add_argument("--upload-mb", type=float, default=100.0, help="size of each uploaded file (MB)")
     parser.add_argument("--sse", type=int, default=3, help="clients streaming the job's events")
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="requests per second per polling client (an offered load); 0: back to back (the maximum)")
+    parser.add_argument("--api-workers", type=int, default=1, help="`drop api --workers`")
+    parser.add_argument("--service-repo", type=Path, default=REPO,
+                        help="a checkout whose service runs the load (e.g. an older commit, for before figures)")
+    parser.add_argument("--before-repo", type=Path, default=None,
+                        help="a checkout measured beside this code in the ceiling (same run, alternating rounds)")
+    parser.add_argument("--ceiling-rounds", type=int, default=4, help="0 skips the ceiling")
+    parser.add_argument("--ceiling-round-s", type=float, default=3.0)
+    parser.add_argument("--name", default="service_load", help="results file stem in --out")
     parser.add_argument("--note", default="", help="a sentence about the machine for the markdown (background load)")
     parser.add_argument("--out", type=Path, default=REPO / "bench/results")
     args = parser.parse_args()
@@ -401,14 +529,16 @@ def main() -> int:
         folder = Path(tmp)
         print(f"making datasets in {folder}", flush=True)
         train, upload = make_files(folder, args.upload_mb)
+        limits = ceiling(args, folder) if args.ceiling_rounds else None
         print("starting PostgreSQL database, API and worker", flush=True)
-        with service(folder, upload.stat().st_size) as (base, token, api, worker):
+        with service(folder, upload.stat().st_size, args.service_repo, args.api_workers) as (base, token, api, worker):
             result = asyncio.run(run_load(args, base, token, api, worker, train, upload))
             result["server_log"] = {name: notable_lines(folder / f"{name}.log") for name in ("api", "worker")}
+        result["ceiling"] = limits
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "service_load.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / f"{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
     text = markdown(result)
-    (args.out / "service_load.md").write_text(text)
+    (args.out / f"{args.name}.md").write_text(text)
     print(text)
     return 1 if result["problems"] else 0
 

@@ -5,8 +5,9 @@ default so a caller overrides only what it needs.
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, TextIO
 
 
 class Callback:
@@ -60,6 +61,43 @@ class ProgressBar(Callback):
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+class ProgressLine(Callback):
+    """Plain progress lines for a log file (where tqdm's redrawn bars pile up): one when a phase or an epoch begins,
+    at most one every `every_s` seconds within, and one per evaluation."""
+
+    def __init__(self, stream: TextIO, every_s: float = 30.0):
+        self.stream, self.every_s = stream, every_s
+        self._key: tuple[str, int] | None = None
+        self._last = 0.0
+
+    def _print(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+        self._last = time.monotonic()
+
+    def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
+        key = (phase, epoch)
+        if key == self._key and step != total and time.monotonic() - self._last < self.every_s:
+            return
+        self._key = key
+        share = f" ({100 * step / total:.1f}%)" if total else ""
+        where = f"epoch {epoch}, step {step}/{total}" if phase == "train" else f"{step}/{total}"
+        self._print(f"{phase}: {where}{share}")
+
+    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        if metrics.get("dynamics/from_cache"):
+            self._print("dynamics: from the model cache")
+
+    def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
+        self._print(f"evaluation: epoch {epoch}, return {mean_return:.1f}, score {normalized_score:.1f}")
+
+
+def progress_reporter(enabled: bool, stream: TextIO) -> Callback:
+    """A bar on a terminal, lines in a log file, or nothing."""
+    if not enabled:
+        return Callback()
+    return ProgressBar() if stream.isatty() else ProgressLine(stream)
 
 
 class CallbackList(Callback):

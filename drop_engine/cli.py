@@ -22,8 +22,20 @@ def _parse_override(text: str) -> tuple[str, object]:
         return key, raw
 
 
+def write_curve(run_dir: Path) -> Path:
+    """`curve.png` beside the run's evaluations.csv: the figure the API serves for a job."""
+    from .plots import learning_curve
+    from .run_log import RunLog
+
+    rows = RunLog.read_evaluations(run_dir / "evaluations.csv")
+    path = run_dir / "curve.png"
+    path.write_bytes(learning_curve(run_dir.name, [int(r["epoch"]) for r in rows],
+                                    [float(r["normalized_score"]) for r in rows]))
+    return path
+
+
 def cmd_train(args: argparse.Namespace) -> int:
-    from .callbacks import CallbackList, ProgressBar
+    from .callbacks import CallbackList, progress_reporter
     from .data import DatasetError
     from .run_log import RunLog
     from .trainer import train
@@ -36,17 +48,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"drop train: {exc}", file=sys.stderr)
         return 2
-    bar = ProgressBar()
+    progress = progress_reporter(not args.no_progress, sys.stderr)
     try:
-        callback = CallbackList(bar, RunLog(args.out, config.steps_per_epoch))
+        callback = CallbackList(progress, RunLog(args.out, config.steps_per_epoch))
         result = train(args.dataset, config, args.out, callback, None if args.no_model_cache else args.model_cache)
     except DatasetError as exc:
         print(f"drop train: {args.dataset}: {exc}", file=sys.stderr)
         return 2
     finally:
-        bar.close()
+        getattr(progress, "close", lambda: None)()
     summary = result.to_dict()
-    Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
+    Path(args.out, "summary.json").write_text(json.dumps({**summary, "config": config.model_dump(mode="json")},
+                                                         indent=2))
+    write_curve(Path(args.out))
     keys = ("status", "epochs", "last_return", "last_score", "best_score", "best_epoch", "final_score", "policy",
             "timings")
     shown = {k: summary[k] for k in keys}
@@ -54,6 +68,20 @@ def cmd_train(args: argparse.Namespace) -> int:
         shown["dynamics_from_cache"] = summary["dynamics"]["from_cache"]
     print(json.dumps(shown, indent=2))
     return 0 if result.status == "completed" else 1
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from .plots import overlay
+    from .run_log import NotARun, read_curve
+
+    try:
+        curves = [read_curve(run) for run in args.runs]
+    except NotARun as exc:
+        print(f"drop plot: {exc}", file=sys.stderr)
+        return 2
+    Path(args.out).write_bytes(overlay(curves, args.title))
+    print(args.out)
+    return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -132,13 +160,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
                    help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
-    p.add_argument("--out", required=True, help="run directory (checkpoints, policy/last and policy/best, metrics.jsonl); an existing one is "
-                   "resumed")
+    p.add_argument("--out", required=True, help="run directory (checkpoints, policy/last and policy/best, metrics.jsonl, "
+                   "evaluations.csv, curve.png, summary.json); an existing one is resumed")
     p.add_argument("--model-cache", default=DEFAULT_MODEL_CACHE, metavar="DIR",
                    help="trained dynamics ensembles shared between runs, by dataset, dynamics config and seed "
                         f"(default {DEFAULT_MODEL_CACHE})")
     p.add_argument("--no-model-cache", action="store_true", help="always train the dynamics ensemble, store nothing")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress output (default: a bar on a terminal, plain lines when stderr is a file or pipe)")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("plot", help="overlay runs' learning curves: seeds as mean and band, algorithms as colours")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories of drop train (or the paper table)")
+    p.add_argument("--out", required=True, help="the PNG to write")
+    p.add_argument("--title", default="", help="default: the envs")
+    p.set_defaults(func=cmd_plot)
 
     p = sub.add_parser("evaluate", help="evaluate an exported policy in the real env")
     p.add_argument("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Mapping
 
 from .callbacks import Callback
+from .plots import Curve
 
 EVALUATION_FIELDS = ("epoch", "mean_return", "normalized_score", "time")
 
@@ -56,3 +57,33 @@ class RunLog(Callback):
             return []
         with path.open(newline="") as f:
             return list(csv.DictReader(f))
+
+
+class NotARun(ValueError):
+    pass
+
+
+def run_config(run_dir: Path) -> dict:
+    """A run's config: from `summary.json` (drop train), an exported policy's metadata, or else its newest checkpoint
+    (slow: the whole state is loaded)."""
+    for path in (run_dir / "summary.json", run_dir / "policy" / "last" / "metadata.json",
+                 run_dir / "policy" / "metadata.json"):
+        if path.is_file() and (config := json.loads(path.read_text()).get("config")):
+            return config
+    from .checkpoint import load_latest
+
+    state = load_latest(run_dir / "checkpoints")
+    if state is None:
+        raise NotARun(f"{run_dir}: no summary.json, policy metadata or checkpoint says what the run was")
+    return state["config"]
+
+
+def read_curve(run_dir: str | Path) -> Curve:
+    """A run directory's learning curve (evaluations.csv) with its algorithm, env and seed."""
+    run_dir = Path(run_dir)
+    rows = RunLog.read_evaluations(run_dir / "evaluations.csv")
+    if not rows:
+        raise NotARun(f"{run_dir}: no evaluations.csv, or no evaluation in it yet")
+    config = run_config(run_dir)
+    return Curve(config["algorithm"], config["env"], int(config["seed"]), [int(r["epoch"]) for r in rows],
+                 [float(r["normalized_score"]) for r in rows])

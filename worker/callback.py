@@ -77,7 +77,10 @@ class DbCallback(Callback):
         with self.sessions.begin() as s:
             latest = s.scalar(select(Job.latest_metrics).where(Job.id == self.job_id)) or {}
             latest = {**latest, **values, "step": step}
-            if s.execute(update(Job).where(self._mine()).values(latest_metrics=latest)).rowcount:
+            columns = {"latest_metrics": latest}
+            if "dynamics/from_cache" in values:  # for /metrics: dynamics-cache hits and misses
+                columns["dynamics_from_cache"] = bool(values["dynamics/from_cache"])
+            if s.execute(update(Job).where(self._mine()).values(**columns)).rowcount:
                 s.add_all(JobMetric(job_id=self.job_id, name=k, step=step, value=v) for k, v in values.items())
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:

@@ -11,13 +11,15 @@ import socket
 import threading
 import time
 import traceback
+from datetime import datetime
 from pathlib import Path
 from typing import Callable
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.exc_chain import causes
+from app.logs import bound
 from app.models import Dataset, Job, JobEvent, utcnow
 from app.settings import Settings
 from app.storage import job_dir, model_cache_dir
@@ -41,23 +43,37 @@ def claim(sessions: sessionmaker[Session], job_id: str, name: str) -> int | None
                                 started_at=now)).rowcount
         if not won:
             return None
-        attempt = s.scalar(select(Job.attempts).where(Job.id == job_id))
+        attempt, created_at, waited = s.execute(select(Job.attempts, Job.created_at, Job.queue_wait_s)
+                                                .where(Job.id == job_id)).one()
+        if waited is None:  # the first claim ends the job's wait in the queue
+            s.execute(update(Job).where(Job.id == job_id).values(queue_wait_s=_seconds(created_at, now)))
         s.add(JobEvent(job_id=job_id, type="status", message=f"running (attempt {attempt} on {name})",
                        data={"status": "running", "attempt": attempt, "worker": name}))
     return attempt
 
 
+def _seconds(start: datetime | None, end: datetime) -> float:
+    return max(0.0, (end - start).total_seconds()) if start is not None else 0.0
+
+
+def _ran(started_at: datetime | None, now: datetime):
+    """The job's run_s plus this attempt's seconds, as an SQL expression."""
+    return func.coalesce(Job.run_s, 0.0) + _seconds(started_at, now)
+
+
 def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: str, message: str, *,
            error: tuple[str, str] | None = None, result: dict | None = None, trace: str | None = None) -> bool:
     """Record the end of this attempt, unless the job is no longer ours."""
-    values = {"status": status, "finished_at": utcnow(), "heartbeat_at": utcnow()}
+    now = utcnow()
+    values = {"status": status, "finished_at": now, "heartbeat_at": now}
     if error:
         values.update(error_code=error[0], error_message=error[1])
     if result is not None:
         values.update(result=result)
     with sessions.begin() as s:
         mine = (Job.id == job_id) & (Job.attempts == attempt) & Job.status.in_(("running", "cancelling"))
-        if not s.execute(update(Job).where(mine).values(**values)).rowcount:
+        started_at = s.scalar(select(Job.started_at).where(mine))
+        if not s.execute(update(Job).where(mine).values(**values, run_s=_ran(started_at, now))).rowcount:
             return False
         data = {"status": status, **({"error": {"code": error[0], "message": error[1]}} if error else {})}
         s.add(JobEvent(job_id=job_id, type="status", message=message, data=data))
@@ -96,8 +112,10 @@ def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message:
     """Give the job back (its worker is shutting down); the attempt does not count against max_attempts."""
     with sessions.begin() as s:
         mine = (Job.id == job_id) & (Job.attempts == attempt) & (Job.status == "running")
+        started_at = s.scalar(select(Job.started_at).where(mine))
         if not s.execute(update(Job).where(mine).values(status="queued", worker=None, enqueued_at=None,
-                                                        attempts=Job.attempts - 1)).rowcount:
+                                                        attempts=Job.attempts - 1,
+                                                        run_s=_ran(started_at, utcnow()))).rowcount:
             return False
         s.add(JobEvent(job_id=job_id, type="status", message=message, data={"status": "queued"}))
     return True
@@ -149,10 +167,14 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
     callback = DbCallback(sessions, job_id, attempt, settings.cancel_poll_s, shutting_down)
     heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
     heartbeat.start()
-    try:
-        return _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback, started)
-    finally:
-        heartbeat.stop()
+    with bound(job_id=job_id, attempt=attempt, worker=name):  # on every log line of this attempt
+        log.info("claimed job %s, attempt %s", job_id, attempt)
+        try:
+            status = _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback, started)
+        finally:
+            heartbeat.stop()
+        log.info("job %s attempt %s ended: %s", job_id, attempt, status)
+        return status
 
 
 def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Dataset | None, config_data: dict,

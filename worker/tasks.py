@@ -7,7 +7,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
+from celery.signals import setup_logging, worker_ready, worker_shutdown, worker_shutting_down
 
 from app.db import make_engine, make_sessionmaker
 from app.settings import get_settings
@@ -62,6 +62,11 @@ def _reaper_loop(slots: int) -> None:
                 log.warning("reaper re-sent jobs %s", ", ".join(sent))
         except Exception:
             log.exception("reaper pass failed")
+
+
+@setup_logging.connect
+def _keep_our_logging(**_) -> None:
+    """`drop worker` set up logging (app.logs) before Celery started; a receiver here stops Celery replacing it."""
 
 
 @worker_ready.connect

@@ -9,6 +9,7 @@ from sqlalchemy.orm import Session
 from .. import quotas, serialize
 from ..deps import DB, Config, Owner, DatasetCursor, owned_dataset
 from ..ids import new_id
+from ..metrics import UPLOAD_BYTES, VALIDATION_SECONDS, counting_rejections
 from ..models import ACTIVE_STATUSES, Dataset, Job
 from ..problems import Problem
 from ..schemas import DatasetOut, Page
@@ -28,18 +29,21 @@ def _save(s: Session, row: Dataset, settings: Settings) -> None:
 
 @router.post("", status_code=201, response_model=DatasetOut,
              summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
+@counting_rejections
 async def upload_dataset(request: Request, name: str | None = Query(None, max_length=300),
                          owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
     dataset_id = new_id("ds")
     part = upload_dir(settings) / f"{dataset_id}.part"
     limit, too_large = await run_in_threadpool(quotas.upload_limit, s, owner, settings)
     upload = await receive(request, part, limit, name, too_large)
+    UPLOAD_BYTES.inc(upload.size)
     target = dataset_dir(settings, dataset_id)
     try:
         target.mkdir(parents=True)
         try:
-            result = await validate_file(part, target, memory=settings.validate_memory_bytes,
-                                         timeout=settings.validate_timeout_s, max_bytes=settings.max_upload_bytes)
+            with VALIDATION_SECONDS.time():
+                result = await validate_file(part, target, memory=settings.validate_memory_bytes,
+                                             timeout=settings.validate_timeout_s, max_bytes=settings.max_upload_bytes)
         except Invalid as exc:
             raise Problem(422, "invalid_dataset", str(exc)) from None
         report = result["report"]

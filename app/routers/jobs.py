@@ -6,11 +6,13 @@ import json
 import logging
 
 from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from .. import quotas, serialize
+from .. import quotas, reads, serialize
 from ..deps import DB, Config, Owner, JobCursor, owned_dataset, owned_job
 from ..ids import new_id
 from ..jobcreate import JobRequest, build
@@ -76,22 +78,15 @@ def create_job(req: JobRequest, request: Request, response: Response,
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
-def list_jobs(status: str | None = Query(None, description=" | ".join(JOB_STATUSES)), after: JobCursor = None,
-              limit: int = Query(20, ge=1, le=100), owner: str = Owner, s: Session = DB) -> dict:
-    q = select(Job).where(Job.owner_id == owner)
-    if status is not None:
-        if status not in JOB_STATUSES:
-            raise Problem(422, "validation_error", f"status: must be one of {', '.join(JOB_STATUSES)}",
-                          errors=[{"field": "status", "message": "unknown status"}])
-        q = q.where(Job.status == status)
-    if after:
-        q = q.where(Job.id < after)
-    return serialize.fetch_page(s, q.order_by(Job.id.desc()), serialize.job, limit)
+async def list_jobs(request: Request, status: str | None = Query(None, description=" | ".join(JOB_STATUSES)),
+                    after: JobCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner) -> JSONResponse:
+    return JSONResponse(await run_in_threadpool(reads.jobs_page, request.app.state.reader, owner, status, after,
+                                                limit))
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def get_job(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
-    return serialize.job(owned_job(s, owner, job_id))
+async def get_job(job_id: str, request: Request, owner: str = Owner) -> JSONResponse:
+    return JSONResponse(await run_in_threadpool(reads.job, request.app.state.reader, owner, job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,

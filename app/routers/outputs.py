@@ -2,23 +2,24 @@
 learning curve and the trained policy."""
 from __future__ import annotations
 
-import asyncio
 import json
+import time
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Callable, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse, StreamingResponse
+from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
+from starlette.background import BackgroundTask
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from drop_engine.plots import learning_curve
 from drop_engine.scores import Which
 
-from .. import serialize
-from ..curve import render
+from .. import reads, serialize
 from ..deps import DB, Config, Owner, owned_job
-from ..models import FINAL_STATUSES, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from ..models import FINAL_STATUSES, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from ..problems import Problem
 from ..schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, Page
 from ..settings import Settings
@@ -32,52 +33,63 @@ After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a 
 
 
 def _events_after(factory, job_id: str, after: int, limit: int) -> tuple[list[dict], str]:
-    from ..models import Job
-
+    """(events after `after`, the job's status). The status is read first: a final status commits together with its
+    events, so when it is final here they are all in the rows read next, and the stream cannot end short of them."""
     with factory() as s:
+        status = s.scalar(select(Job.status).where(Job.id == job_id))
         rows = s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
                          .order_by(JobEvent.id).limit(limit))
-        items = [serialize.event(r) for r in rows]
-        status = s.scalar(select(Job.status).where(Job.id == job_id))
-    return items, status
+        return [serialize.event(r) for r in rows], status
 
 
-async def _stream(request: Request, job_id: str, after: int):
-    factory = request.app.state.sessions
-    idle = 0.0
-    while True:
-        items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
-        for item in items:
-            after = item["id"]
-            yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
-        if items:
-            idle = 0.0
-            continue
-        if status in FINAL_STATUSES or status is None:
-            yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
-            return
-        if await request.is_disconnected():
-            return
-        await asyncio.sleep(SSE_POLL_S)
-        idle += SSE_POLL_S
-        if idle >= SSE_KEEPALIVE_S:
-            idle = 0.0
-            yield ": keep-alive\n\n"
+async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
+    """Events after `after` until the job ends. Each read takes a pooled connection only for its query; in between the
+    stream waits for the job's next notification (PostgreSQL) or polls every SSE_POLL_S (SQLite, or listener down)."""
+    factory, waker = request.app.state.reader, request.app.state.events
+    try:
+        with waker.subscribe(job_id) as topic:
+            quiet = 0.0
+            while True:
+                seen = topic.version
+                items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
+                for item in items:
+                    after = item["id"]
+                    yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
+                if items:
+                    quiet = 0.0
+                    continue
+                if status in FINAL_STATUSES or status is None:
+                    yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
+                    return
+                if await request.is_disconnected():
+                    return
+                began = time.monotonic()
+                await waker.wait(topic, seen, SSE_KEEPALIVE_S - quiet if waker.live else SSE_POLL_S)
+                quiet += time.monotonic() - began
+                if quiet >= SSE_KEEPALIVE_S:
+                    quiet = 0.0
+                    yield ": keep-alive\n\n"
+    finally:
+        release()
 
 
 @router.get("/events", response_model=Page[EventOut],
             summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends",
             responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}}})
-def job_events(job_id: str, request: Request, after: After = 0, limit: int = Query(100, ge=1, le=1000),
-               owner: str = Owner, s: Session = DB):
-    owned_job(s, owner, job_id)
-    if "text/event-stream" in request.headers.get("accept", ""):
-        last = request.headers.get("last-event-id", "")
-        start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after
-        return StreamingResponse(_stream(request, job_id, start), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
-    q = select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after).order_by(JobEvent.id)
-    return serialize.fetch_page(s, q, serialize.event, limit)
+async def job_events(job_id: str, request: Request, after: After = 0, limit: int = Query(100, ge=1, le=1000),
+                     owner: str = Owner):
+    sessions = request.app.state.reader
+    if "text/event-stream" not in request.headers.get("accept", ""):
+        return JSONResponse(await run_in_threadpool(reads.events_page, sessions, owner, job_id, after, limit))
+    await run_in_threadpool(reads.job, sessions, owner, job_id)  # 404 unless it is the owner's
+    last = request.headers.get("last-event-id", "")
+    start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after
+    release = request.app.state.stream_slots.take(owner)
+    # The stream's own `finally` gives the slot back, and so does the background task in case the stream is never
+    # started (the client left first).
+    return StreamingResponse(_stream(request, job_id, start, release), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+                             background=BackgroundTask(release))
 
 
 @router.get("/metrics", response_model=Page[MetricOut], summary="Scalar training metrics, oldest first; filter by name")
@@ -110,7 +122,7 @@ def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
 def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
     owned_job(s, owner, job_id)
     rows = list(s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id)))
-    png = render(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
+    png = learning_curve(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
     return Response(png, media_type="image/png")
 
 

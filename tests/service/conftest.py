@@ -119,10 +119,11 @@ def wait_ready(http: httpx.Client, proc: subprocess.Popen, log: Path, timeout: f
         time.sleep(0.2)
 
 
-def start_worker(settings: Settings, log: Path) -> subprocess.Popen:
-    """A `drop worker` in a process group of its own, so kill_group takes its pool children with it."""
+def start_worker(settings: Settings, log: Path, repo: Path = REPO) -> subprocess.Popen:
+    """A `drop worker` (of the code in `repo`) in a process group of its own, so kill_group takes its pool children
+    with it."""
     with log.open("ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=REPO,
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=repo,
                                 env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
                                 start_new_session=True)
     try:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import secrets
+import time
 
 import pytest
 from sqlalchemy import select
@@ -93,7 +94,18 @@ def _cli(settings, monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
-def test_revoked_token_is_refused_at_once(client, settings, carol, monkeypatch, capsys):
+def _refused_within(client, token: str, seconds: float) -> None:
+    """Refused (401) at the latest `seconds` after its revocation, and from then on: API processes trust a token
+    lookup for DROP_TOKEN_CACHE_S."""
+    deadline = time.monotonic() + seconds
+    while client.get("/v1/datasets", headers=_bearer(token)).status_code == 200:
+        assert time.monotonic() < deadline, f"a revoked token still works after {seconds} s"
+        time.sleep(0.2)
+    for _ in range(3):
+        _assert_401(client.get("/v1/datasets", headers=_bearer(token)), "unknown or revoked")
+
+
+def test_revoked_token_is_refused_within_seconds(client, settings, carol, monkeypatch, capsys):
     name, first, second = carol
     assert client.get("/v1/datasets", headers=_bearer(first)).status_code == 200
 
@@ -103,14 +115,14 @@ def test_revoked_token_is_refused_at_once(client, settings, carol, monkeypatch, 
 
     code, out, _ = _cli(settings, monkeypatch, capsys, "token", "revoke", first)  # by the token itself
     assert code == 0 and "revoked" in out
-    _assert_401(client.get("/v1/datasets", headers=_bearer(first)), "unknown or revoked")
+    _refused_within(client, first, settings.token_cache_s + 1)
     assert client.get("/v1/datasets", headers=_bearer(second)).status_code == 200  # the owner's other token
 
     revoked = next(i for i in ids if i in out)
     other = next(i for i in ids if i != revoked)
     code, out, _ = _cli(settings, monkeypatch, capsys, "token", "revoke", other[:-3])  # by the start of its id
     assert code == 0 and other in out
-    _assert_401(client.get("/v1/datasets", headers=_bearer(second)), "unknown or revoked")
+    _refused_within(client, second, settings.token_cache_s + 1)
 
     code, out, _ = _cli(settings, monkeypatch, capsys, "token", "list", "--owner", name)
     assert code == 0 and not any(line.endswith(" -") for line in out.splitlines()[1:])
@@ -123,3 +135,16 @@ def test_revoke_needs_exactly_one_match(settings, carol, monkeypatch, capsys):
     assert code == 2 and "no token matches 'tok_nope'" in err
     code, _, err = _cli(settings, monkeypatch, capsys, "token", "revoke", "drop_not-a-real-token")
     assert code == 2 and "no token matches" in err
+
+
+def test_token_lookups_are_cached_briefly():
+    from app.token_cache import TokenCache
+
+    cache = TokenCache(ttl_s=0.3)
+    cache.put("h", "own_1")
+    assert cache.get("h") == "own_1" and cache.get("other") is None
+    time.sleep(0.35)
+    assert cache.get("h") is None
+    off = TokenCache(ttl_s=0)
+    off.put("h", "own_1")
+    assert off.get("h") is None

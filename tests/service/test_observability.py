@@ -1,0 +1,115 @@
+"""/metrics moves with a real job (HTTP, uploads, jobs from the database, the dynamics cache), a request's id goes
+round trip and onto its log lines, and a worker's log lines carry the job, attempt and worker."""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
+from .conftest import kill_group, start_worker
+
+
+def sample(text: str, name: str, **labels: str) -> float:
+    """One sample's value in a scrape (0 when absent)."""
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            if s.name == name and all(s.labels.get(k) == v for k, v in labels.items()):
+                return s.value
+    return 0.0
+
+
+@pytest.fixture
+def served(own_settings, tmp_path):
+    """An app and a worker of the test's own, on a database of its own, so every count is the test's."""
+    from app.auth import create_token
+    from app.main import create_app
+
+    app = create_app(own_settings)
+    token = create_token(app.state.sessions, "metrics")
+    worker = start_worker(own_settings, tmp_path / "worker.log")
+    try:
+        with TestClient(app, headers={"Authorization": f"Bearer {token}"}) as client:
+            yield client, tmp_path / "worker.log"
+    finally:
+        kill_group(worker)
+        app.state.engine.dispose()
+
+
+def test_metrics_move_during_a_smoke_job(served, hopper_file):
+    client, worker_log = served
+    before = client.get("/metrics")
+    assert before.status_code == 200 and before.headers["content-type"].startswith("text/plain")
+    before = before.text
+
+    refused = client.post("/v1/datasets", content=b"not a dataset", headers={"Content-Type": "application/x-hdf5"})
+    assert refused.status_code == 422
+    ds = client.post("/v1/datasets", files={"file": ("h.hdf5", hopper_file.read_bytes())}).json()
+    job = client.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
+    during = client.get("/metrics").text
+    unfinished = sum(sample(during, "drop_jobs", status=s) for s in ("queued", "running", "cancelling"))
+    assert unfinished == 1, during
+    for _ in range(480):
+        status = client.get(f"/v1/jobs/{job['id']}").json()["status"]
+        if status in ("succeeded", "failed", "cancelled"):
+            break
+        time.sleep(0.25)
+    assert status == "succeeded"
+    after = client.get("/metrics").text
+
+    def moved(name: str, **labels: str) -> float:
+        return sample(after, name, **labels) - sample(before, name, **labels)
+
+    assert moved("drop_jobs", status="succeeded") == 1
+    assert moved("drop_job_attempts_total") == 1
+    assert moved("drop_job_queue_wait_seconds_count") == 1 and moved("drop_job_run_seconds_count") == 1
+    assert moved("drop_job_run_seconds_sum") > 0
+    assert moved("drop_dynamics_cache_lookups_total", result="hit") + moved(
+        "drop_dynamics_cache_lookups_total", result="miss") == 1
+    assert moved("drop_http_requests_total", method="GET", route="/v1/jobs/{job_id}", status="200") >= 1
+    assert moved("drop_http_request_duration_seconds_count", method="POST", route="/v1/jobs", status="201") == 1
+    assert moved("drop_upload_bytes_total") == hopper_file.stat().st_size + len(b"not a dataset")
+    assert moved("drop_upload_validation_duration_seconds_count") == 2
+    assert moved("drop_upload_rejections_total", code="invalid_dataset") == 1
+
+    lines = [json.loads(line) for line in worker_log.read_text().splitlines() if line.startswith("{")]
+    mine = [line for line in lines if line.get("job_id") == job["id"]]
+    assert mine and all(line["attempt"] == 1 and line["worker"] for line in mine), lines[-20:]
+    assert any("ended: succeeded" in line["event"] for line in mine)
+
+
+@pytest.fixture
+def json_logs():
+    """JSON log lines, as `drop api` writes them to stderr, captured here; logging is restored afterwards."""
+    from app.logs import configure
+
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    configure("json", "INFO")
+    out = io.StringIO()
+    root.handlers[0].setStream(out)
+    try:
+        yield lambda: [json.loads(line) for line in out.getvalue().splitlines()]
+    finally:
+        root.handlers, root.level = saved
+
+
+def test_request_id_round_trip_and_on_log_lines(client, alice, json_logs):
+    r = alice.get("/v1/jobs", headers={"X-Request-ID": "trace-42.a"})
+    assert r.status_code == 200 and r.headers["x-request-id"] == "trace-42.a"
+    fresh = client.get("/healthz").headers["x-request-id"]
+    assert len(fresh) == 32 and fresh != "trace-42.a"
+    for bad in ("has space", "x" * 200, "ünïcode".encode("latin-1")):
+        assert client.get("/healthz", headers={"X-Request-ID": bad}).headers["x-request-id"] not in (bad, fresh)
+    missing = alice.get("/v1/jobs/job_nope", headers={"X-Request-ID": "trace-43"})
+    assert missing.status_code == 404 and missing.headers["x-request-id"] == "trace-43"
+
+    lines = json_logs()
+    access = {line["request_id"]: line for line in lines if line.get("logger") == "drop.access"}
+    assert access["trace-42.a"]["status"] == 200 and access["trace-42.a"]["path"] == "/v1/jobs"
+    assert access["trace-43"]["status"] == 404 and access[fresh]["path"] == "/healthz"
+    assert {"timestamp", "level", "ms", "method"} <= access["trace-42.a"].keys()
