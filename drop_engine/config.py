@@ -75,6 +75,10 @@ class SACConfig(_Strict):
     bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
                              "actor minimises (alpha logp - Q)/mean|Q| + w * mean (tanh(mu(s)) - a)^2 on a real batch; "
                              "0 is plain SAC (the paper)")
+    bc_action: Literal["mean", "sample"] = Field(
+        "mean", description="what the behaviour term pulls to the data's action: the deterministic action tanh(mu(s)), "
+                            "as TD3+BC, or a reparameterised sample of the policy, which also keeps its spread near the "
+                            "data's (the stochastic policy is what rollouts and DICE see)")
 
 
 class RolloutConfig(_Strict):

@@ -125,7 +125,8 @@ class SAC(nn.Module):
         if self.cfg.bc_weight == 0 or real is None:
             return loss, {}
         real_obs, real_act = real
-        bc = (torch.tanh(self.actor(real_obs)[0]) - real_act).pow(2).mean()
+        pulled = self.actor.sample(real_obs)[0] if self.cfg.bc_action == "sample" else self.actor.act(real_obs, True)
+        bc = (pulled - real_act).pow(2).mean()
         scaled = loss / q_new.detach().abs().mean().clamp_min(1e-6)
         return scaled + self.cfg.bc_weight * bc, {"sac/bc_mse": bc.detach()}
 
