@@ -60,3 +60,21 @@ def test_behaviour_term_holds_the_actor_at_the_data(bc_weight, expected):
     assert (act - expected).abs().max().item() < 0.15
     assert {"sac/q_data", "sac/q_model"} <= set(metrics)
     assert ("sac/bc_mse" in metrics) == (bc_weight > 0)
+
+
+def test_behaviour_term_on_samples_also_holds_the_spread():
+    """Data with one action: a term on the policy's samples narrows them around it; one on the mean does not."""
+    spread = {}
+    for mode in ("mean", "sample"):
+        torch.manual_seed(0)
+        sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=10.0,
+                                  bc_action=mode))
+        for _ in range(800):
+            s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
+            r = -(a[:, 0] - 0.5).pow(2) * 10
+            sac.update(s, a, r, s, torch.ones(128), real=(s, torch.full((128, 1), -0.5)), n_real=64)
+        with torch.no_grad():
+            samples = sac.actor.act(torch.zeros(4096, 1))
+            assert (sac.actor.act(torch.zeros(1, 1), deterministic=True) + 0.5).abs().item() < 0.15, mode
+        spread[mode] = (samples + 0.5).pow(2).mean().sqrt().item()  # how far samples fall from the data's action
+    assert spread["sample"] < 0.5 * spread["mean"], spread
