@@ -106,8 +106,10 @@ def cmd_token_revoke(args: argparse.Namespace) -> int:
 
 
 def default_api_workers() -> int:
-    """One API process per core this process may use, up to 8: the API is async, so more would only contend."""
-    return max(1, min(len(os.sched_getaffinity(0)), 8))
+    """One API process per core this process may use, up to 4: the API is async, so more would only contend, and
+    each process holds a database pool of its own (README: the connection budget)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, 4))
 
 
 @contextmanager

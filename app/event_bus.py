@@ -60,7 +60,7 @@ class EventWaker:
     async def wait(topic: Topic, seen: int, timeout: float) -> None:
         """Until a notification newer than `seen`, or `timeout` seconds."""
         if topic.version == seen:
-            with suppress(TimeoutError):
+            with suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(topic.event.wait(), timeout)
 
 

@@ -7,7 +7,6 @@ so of several processes that need the same model one trains it and the others wa
 """
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import time
@@ -47,7 +46,10 @@ class ModelCache:
         """Hold the key's lock; yields False, without it, if `should_stop` turns true while another process has it.
 
         Polled rather than blocking so a run waiting for another one's training can still be cancelled. Lock files
-        are never removed: removing one would let two processes hold "the" lock on different files."""
+        are never removed: removing one would let two processes hold "the" lock on different files. `fcntl` is imported
+        here, so the engine without a cache runs where POSIX locks do not exist."""
+        import fcntl
+
         self.directory.mkdir(parents=True, exist_ok=True)
         with open(self.directory / f"{key}.lock", "a") as handle:
             while True:
@@ -96,6 +98,13 @@ class ModelCache:
                 return report, True
             report = fit()
             if report.stopped_by != "cancelled":
-                save_durably({"format": FORMAT, "key": key, "state_dict": model.state_dict(), "report": asdict(report)},
-                             self.path(key))
+                self._store(key, model, report)
             return report, False
+
+    def _store(self, key: str, model: GaussianEnsemble, report: DynamicsReport) -> None:
+        """Best effort: a full or read-only cache costs later runs a training, never this run its result."""
+        try:
+            save_durably({"format": FORMAT, "key": key, "state_dict": model.state_dict(), "report": asdict(report)},
+                         self.path(key))
+        except OSError as exc:
+            warnings.warn(f"model cache: could not store {self.path(key)}: {exc}", stacklevel=2)

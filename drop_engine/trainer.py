@@ -39,6 +39,7 @@ from .sac import SAC, Actor
 from .scores import Which, summarize
 
 CHECKPOINT_FORMAT = 2  # 2: the best actor snapshot
+READABLE_FORMATS = (1, 2)  # a run stopped before the upgrade resumes; its earlier best weights were not kept
 
 
 @dataclass
@@ -150,13 +151,13 @@ class Trainer:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        if state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"checkpoint format {state.get('format')} is not {CHECKPOINT_FORMAT}")
+        if state.get("format") not in READABLE_FORMATS:
+            raise ValueError(f"checkpoint format {state.get('format')} is not one of {READABLE_FORMATS}")
         self.epoch, self.step_in_epoch, self.global_step = state["epoch"], state["step_in_epoch"], state["global_step"]
         self.epoch_started = state["epoch_started"]
         self.model.load_state_dict(state["dynamics"])
         self.dynamics_report = DynamicsReport(**state["dynamics_report"]) if state["dynamics_report"] else None
-        self.dynamics_source = state.get("dynamics_source")  # absent from checkpoints written before the model cache
+        self.dynamics_source = state.get("dynamics_source")  # absent from format 1
         self.sac.load_state_dict(state["sac"])
         self.sac.load_optim_state(state["sac_optim"])
         if self.dice is not None:
@@ -164,7 +165,7 @@ class Trainer:
             self.dice.load_optim_state(state["dice_optim"])
         self.model_buffer.load_state_dict(state["model_buffer"])
         self.evaluations = list(state["evaluations"])
-        best = state["best"]
+        best = state.get("best")
         self.best = BestActor(best["epoch"], best["score"], _cpu_copy(best["state"])) if best else None
         self.metric_sums, self.metric_count = dict(state["metric_sums"]), state["metric_count"]
         rng = state["rng"]
@@ -374,8 +375,9 @@ class Trainer:
         cfg = self.cfg
         last = self._export("last", self.sac.actor, self.epoch, dict(self._scores()).get(self.epoch), {})
         if self.best is None:
-            best = self._export("best", self.sac.actor, self.epoch, None,
-                                {"selected_by": "no evaluation ran: this is the last policy"})
+            why = ("the best evaluation's weights were not kept (the run resumed from a checkpoint of format 1)"
+                   if self.evaluations else "no evaluation ran")
+            best = self._export("best", self.sac.actor, self.epoch, None, {"selected_by": f"{why}: this is the last policy"})
         else:
             actor = copy.deepcopy(self.sac.actor)  # not a new Actor: its initialisation would draw from the RNG
             actor.load_state_dict(self.best.state)

@@ -115,3 +115,22 @@ def test_cancelled_training_is_not_stored(tmp_path, hopper_dataset):
     report, from_cache = cache.fetch_or_train(key, model, fit, lambda: False)
     assert report.stopped_by == "cancelled" and not from_cache
     assert not cache.path(key).exists()
+
+
+def test_a_failed_store_warns_and_keeps_the_run(tmp_path, hopper_dataset, monkeypatch):
+    """A full or read-only cache costs later runs a training, never this run its model."""
+    import errno
+
+    import drop_engine.model_cache as module
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(module, "save_durably", full)
+    cache = ModelCache(tmp_path)
+    key = model_key(hopper_dataset, TINY, 0)
+    model = build_ensemble(hopper_dataset.obs_dim, hopper_dataset.act_dim, TINY, 0, CPU)
+    with pytest.warns(UserWarning, match="could not store"):
+        report, from_cache = cache.fetch_or_train(
+            key, model, lambda: train_dynamics(model, hopper_dataset, TINY, dynamics_rng(0), CPU), lambda: False)
+    assert report.epochs == TINY.max_epochs and not from_cache and not cache.path(key).exists()

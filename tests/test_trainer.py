@@ -203,3 +203,19 @@ def test_other_seed_or_dynamics_config_is_a_miss(tmp_path, hopper_dataset, chang
     other = Trainer(hopper_dataset, cfg.model_copy(update=change), tmp_path / "b", model_cache=cache)
     assert other.train_dynamics() and other.dynamics_source["from_cache"] is False
     assert len(list(cache.glob("*.pt"))) == 2
+
+
+def test_a_checkpoint_of_format_1_still_resumes(tmp_path, hopper_dataset):
+    """A run stopped before the best snapshot existed resumes after the upgrade, and its best policy says why it is the
+    last one when the best evaluation came before the resume."""
+    cfg = _config("mopo", epochs=3)
+    assert Trainer(hopper_dataset, cfg, tmp_path, Recorder(stop_after=35)).run().status == "stopped"
+    path = list_checkpoints(tmp_path / "checkpoints")[-1]
+    state = torch.load(path, weights_only=False)
+    state["format"] = 1
+    del state["best"], state["dynamics_source"]
+    torch.save(state, path)
+    result = Trainer(hopper_dataset, cfg, tmp_path).run()
+    assert result.status == "completed" and len(result.evaluations) == 3
+    meta = json.loads((tmp_path / "policy" / "best" / "metadata.json").read_text())
+    assert meta["epoch"] == result.best_epoch or "not kept" in meta["selected_by"]

@@ -2,6 +2,7 @@
 cancellation check. Writes are fenced by the attempt number so a worker that lost its job cannot overwrite it."""
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -73,15 +74,18 @@ class DbCallback(Callback):
         self._phase_epoch = key
 
     def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
+        """A non-finite value shows as null in the job and writes no metric row: JSON has no NaN (PostgreSQL refuses
+        it, and the API could not send it back)."""
         values = {k: float(v) for k, v in metrics.items()}
+        finite = {k: v for k, v in values.items() if math.isfinite(v)}
         with self.sessions.begin() as s:
             latest = s.scalar(select(Job.latest_metrics).where(Job.id == self.job_id)) or {}
-            latest = {**latest, **values, "step": step}
+            latest = {**latest, **{k: finite.get(k) for k in values}, "step": step}
             columns = {"latest_metrics": latest}
             if "dynamics/from_cache" in values:  # for /metrics: dynamics-cache hits and misses
                 columns["dynamics_from_cache"] = bool(values["dynamics/from_cache"])
             if s.execute(update(Job).where(self._mine()).values(**columns)).rowcount:
-                s.add_all(JobMetric(job_id=self.job_id, name=k, step=step, value=v) for k, v in values.items())
+                s.add_all(JobMetric(job_id=self.job_id, name=k, step=step, value=v) for k, v in finite.items())
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         with self.sessions.begin() as s:
