@@ -52,8 +52,10 @@ class JobMetrics:
         for status in JOB_STATUSES:
             jobs.add_metric([status], by_status.get(status, 0))
         yield jobs
-        yield CounterMetricFamily("drop_job_attempts", "Attempts started over all jobs (an attempt handed back by a "
-                                  "stopping worker does not count)", value=int(attempts))
+        # A gauge, not a counter: an attempt handed back by a stopping worker is taken off again, and a counter that
+        # goes down reads as a reset.
+        yield GaugeMetricFamily("drop_job_attempts", "Attempts started over all jobs (an attempt handed back by a "
+                                "stopping worker does not count)", value=int(attempts))
         cache = CounterMetricFamily("drop_dynamics_cache_lookups", "Jobs whose dynamics ensemble came from the model "
                                     "cache (hit) or was trained (miss)", labels=["result"])
         cache.add_metric(["hit"], hits)

@@ -27,10 +27,12 @@ FORMAT = 1  # bump when the artifact or the way an ensemble is built or trained 
 LOCK_POLL_S = 0.5
 
 
-def model_key(data: Dataset, cfg: DynamicsConfig, seed: int) -> str:
-    """sha256 over everything the trained ensemble depends on, as canonical JSON."""
+def model_key(data: Dataset, cfg: DynamicsConfig, seed: int, device: str = "cpu") -> str:
+    """sha256 over everything the trained ensemble depends on, as canonical JSON: the same seed trains other weights on
+    another kind of device or another torch build, so those are part of it too."""
     fields = {"format": FORMAT, "dataset": data.content_hash, "dynamics": cfg.model_dump(mode="json"), "seed": seed,
-              "obs_dim": data.obs_dim, "act_dim": data.act_dim}
+              "obs_dim": data.obs_dim, "act_dim": data.act_dim, "device": torch.device(device).type,
+              "torch": torch.__version__}
     return hashlib.sha256(json.dumps(fields, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 

@@ -196,7 +196,7 @@ class Trainer:
             return train_dynamics(self.model, self.data, cfg, dynamics_rng(seed), self.device, on_epoch)
 
         start = time.perf_counter()
-        key = model_key(self.data, cfg, seed)
+        key = model_key(self.data, cfg, seed, self.device)
         if self.model_cache is None:
             report, from_cache = fit(), False
         else:

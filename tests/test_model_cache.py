@@ -87,6 +87,7 @@ def test_key_follows_data_config_and_seed(hopper_dataset):
     key = model_key(hopper_dataset, TINY, 0)
     assert key == model_key(hopper_dataset, TINY.model_copy(), 0)
     assert key != model_key(hopper_dataset, TINY, 1)
+    assert key == model_key(hopper_dataset, TINY, 0, "cpu") != model_key(hopper_dataset, TINY, 0, "cuda:0")
     assert key != model_key(hopper_dataset, TINY.model_copy(update={"max_epochs": 3}), 0)
     rewards = hopper_dataset.rewards.copy()
     rewards[7] += 1.0

@@ -8,7 +8,16 @@ evaluations. Jobs already recorded get both from their stored evaluations, by th
 from alembic import op
 import sqlalchemy as sa
 
-from drop_engine.scores import summarize
+# The rule as it was when this migration was written (drop_engine.scores then), copied so that a later change of
+# the rule does not change what this old migration computes.
+FINAL_WINDOW = 3
+
+
+def summarize(pairs: list[tuple[int, float]]) -> tuple[int, float]:
+    """(best epoch, the earliest of ties; mean of the last FINAL_WINDOW scores)."""
+    best_epoch = max(pairs, key=lambda e: e[1])[0]
+    window = [score for _, score in pairs[-FINAL_WINDOW:]]
+    return best_epoch, sum(window) / len(window)
 
 revision = '0002'
 down_revision = '0001'
@@ -26,9 +35,9 @@ def upgrade() -> None:
             "SELECT job_id, epoch, normalized_score FROM job_evaluations ORDER BY job_id, epoch, id")):
         evaluations.setdefault(job_id, []).append((epoch, score))
     for job_id, pairs in evaluations.items():
-        summary = summarize(pairs)
+        best_epoch, final = summarize(pairs)
         conn.execute(sa.text("UPDATE jobs SET best_epoch = :epoch, final_score = :final WHERE id = :id"),
-                     {"epoch": summary.best_epoch, "final": summary.final_score, "id": job_id})
+                     {"epoch": best_epoch, "final": final, "id": job_id})
 
 
 def downgrade() -> None:

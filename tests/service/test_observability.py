@@ -65,7 +65,7 @@ def test_metrics_move_during_a_smoke_job(served, hopper_file):
         return sample(after, name, **labels) - sample(before, name, **labels)
 
     assert moved("drop_jobs", status="succeeded") == 1
-    assert moved("drop_job_attempts_total") == 1
+    assert moved("drop_job_attempts") == 1
     assert moved("drop_job_queue_wait_seconds_count") == 1 and moved("drop_job_run_seconds_count") == 1
     assert moved("drop_job_run_seconds_sum") > 0
     assert moved("drop_dynamics_cache_lookups_total", result="hit") + moved(
