@@ -157,7 +157,9 @@ def main(argv: list[str] | None = None) -> int:
                       if record is None or not (r["setting"] == same_setting and key(r) == key(record))]
             merged += [{**record, "setting": same_setting}] if record else []
             scores = {**now.get("behaviour", {}), **behaviour}
-            results.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
+            tmp = results.with_suffix(".tmp")  # renamed in whole: a reader never sees half a file
+            tmp.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
+            tmp.replace(results)
         mine = sorted((r for r in merged if r["setting"] == same_setting), key=key)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine}
         overrides = " ".join(same_setting["set"])

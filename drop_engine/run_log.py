@@ -15,26 +15,47 @@ EVALUATION_FIELDS = ("epoch", "mean_return", "normalized_score", "time")
 
 
 class RunLog(Callback):
-    """Appends as the run goes; a resumed run first drops what a lost run wrote after its checkpoint, so the files
-    hold one continuous history, as the service's tables do."""
+    """Appends as the run goes; a resumed run first cuts both files back to where they stood when its checkpoint was
+    written, so they hold one continuous history, as the service's tables do. Steps cannot tell where to cut: the
+    metrics of an epoch's start carry the step of the checkpoint before them."""
 
     def __init__(self, out_dir: str | Path, steps_per_epoch: int):
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         self.metrics_path, self.evaluations_path = out / "metrics.jsonl", out / "evaluations.csv"
+        self.marks_path = out / "run_log_marks.json"  # checkpoint "epoch:step" -> the two files' sizes then
         self.steps_per_epoch = steps_per_epoch
 
     def on_start(self, resumed: tuple[int, int] | None) -> None:
+        mark = self._marks().get(f"{resumed[0]}:{resumed[1]}") if resumed is not None else None
+        if mark is not None:
+            for path, size in zip((self.metrics_path, self.evaluations_path), mark):
+                with path.open("r+b") as f:
+                    f.truncate(size)
+            return
+        if resumed is None:
+            self.marks_path.unlink(missing_ok=True)
+        # No mark: a fresh run, or a run killed between writing its checkpoint and marking it, when nothing of the
+        # next epoch was written yet and the steps do tell.
         last_step = -float("inf") if resumed is None else resumed[0] * self.steps_per_epoch + resumed[1]
         last_epoch = -1 if resumed is None else resumed[0]
-        metrics = self._read_metrics()
-        kept = [m for m in metrics if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
+        kept = [m for m in self._read_metrics() if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
         self.metrics_path.write_text("".join(json.dumps(m) + "\n" for m in kept))
         rows = [r for r in self.read_evaluations(self.evaluations_path) if int(r["epoch"]) <= last_epoch]
         with self.evaluations_path.open("w", newline="") as f:
             writer = csv.DictWriter(f, EVALUATION_FIELDS)
             writer.writeheader()
             writer.writerows(rows)
+
+    def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
+        sizes = [p.stat().st_size if p.exists() else 0 for p in (self.metrics_path, self.evaluations_path)]
+        marks = {**self._marks(), f"{epoch}:{step}": sizes}
+        tmp = self.marks_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(marks))
+        tmp.replace(self.marks_path)
+
+    def _marks(self) -> dict[str, list[int]]:
+        return json.loads(self.marks_path.read_text()) if self.marks_path.exists() else {}
 
     def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         line = {"step": step, "time": time.time(), **{k: float(v) for k, v in metrics.items()}}

@@ -25,9 +25,11 @@ def test_run_log_is_continuous_across_stop_and_lost_writes(tmp_path, hopper_data
     split = tmp_path / "split"
     first = Trainer(hopper_dataset, cfg, split, CallbackList(Recorder(stop_after=35), RunLog(split, cfg.steps_per_epoch)))
     assert first.run().status == "stopped"
-    # A lost attempt wrote past the checkpoint before dying: that must not stay in the history.
+    # A lost attempt wrote past the checkpoint before dying, at the checkpoint's own step (an epoch start's metrics)
+    # and later: none of that may stay in the history.
     with (split / "metrics.jsonl").open("a") as f:
-        f.write(json.dumps({"step": first.global_step + 5, "time": 0.0, "sac/q_mean": 1e9}) + "\n")
+        for step in (first.global_step, first.global_step + 5):
+            f.write(json.dumps({"step": step, "time": 0.0, "sac/q_mean": 1e9}) + "\n")
     with (split / "evaluations.csv").open("a") as f:
         f.write(f"{first.epoch + 1},0.0,-999.0,0.0\n")
     Trainer(hopper_dataset, cfg, split, RunLog(split, cfg.steps_per_epoch)).run()
