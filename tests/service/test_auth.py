@@ -140,10 +140,12 @@ def test_revoke_needs_exactly_one_match(settings, carol, monkeypatch, capsys):
 def test_token_lookups_are_cached_briefly():
     from app.token_cache import TokenCache
 
-    cache = TokenCache(ttl_s=0.3)
+    now = [100.0]  # a clock of the test's own: a descheduled test process cannot expire an entry early
+    cache = TokenCache(ttl_s=5, clock=lambda: now[0])
     cache.put("h", "own_1")
+    now[0] += 4.9
     assert cache.get("h") == "own_1" and cache.get("other") is None
-    time.sleep(0.35)
+    now[0] += 0.1
     assert cache.get("h") is None
     off = TokenCache(ttl_s=0)
     off.put("h", "own_1")

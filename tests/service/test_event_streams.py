@@ -67,10 +67,14 @@ def test_hundred_open_streams_leave_the_api_responsive(own_settings):
             tasks = [asyncio.create_task(open_stream(client, url, f, fr)) for f, fr in zip(firsts, frames)]
             await asyncio.wait_for(asyncio.gather(*(f.wait() for f in firsts)), 60)  # every stream is open
 
+            # Held connections made every read wait 30 s for the pool, then 500. The median read is under a second;
+            # a slow one on a loaded 2-core machine is not the failure this guards.
+            seconds = []
             for _ in range(5):
                 began = time.perf_counter()
-                r = await client.get(f"/v1/jobs/{job_id}")
-                assert r.status_code == 200 and time.perf_counter() - began < 1.0, time.perf_counter() - began
+                assert (await client.get(f"/v1/jobs/{job_id}")).status_code == 200
+                seconds.append(time.perf_counter() - began)
+            assert sorted(seconds)[2] < 1.0 and max(seconds) < 10, seconds
             extra = await client.get(url, headers=SSE)
             assert extra.status_code == 429 and extra.json()["code"] == "too_many_streams"
 
@@ -78,8 +82,8 @@ def test_hundred_open_streams_leave_the_api_responsive(own_settings):
             assert app.state.events.live
             began = time.perf_counter()
             (await client.post(f"/v1/jobs/{job_id}/cancel")).raise_for_status()
-            await asyncio.wait_for(asyncio.gather(*tasks), 5)
-            assert time.perf_counter() - began < 5
+            await asyncio.wait_for(asyncio.gather(*tasks), 10)
+            assert time.perf_counter() - began < 10
             assert all(any(line.startswith("event: end") for line in fr) for fr in frames)
             assert all(sum(line.startswith("id: ") for line in fr) == 2 for fr in frames)  # queued, cancelled
             for _ in range(50):  # each stream gives its slot back as it ends
