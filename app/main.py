@@ -9,6 +9,7 @@ from typing import AsyncIterator
 from fastapi import FastAPI
 
 from . import problems
+from .body_timeout import IdleBody
 from .db import make_engine, make_reader, make_sessionmaker, schema_problem
 from .event_bus import EventWaker, listen
 from .job_metrics import JobMetrics
@@ -18,8 +19,9 @@ from .observe import ObserveRequests
 from .procs import supervised
 from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
-from .stream_slots import StreamSlots
+from .slots import stream_slots, upload_slots
 from .token_cache import TokenCache
+from .validate import Validator
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20
@@ -43,12 +45,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
                   lifespan=_lifespan)
     app.add_middleware(BodyLimit, limit=JSON_BODY_LIMIT, exempt={("POST", "/v1/datasets")})
+    app.add_middleware(IdleBody, timeout=settings.body_idle_timeout_s)  # outside BodyLimit, which reads JSON bodies
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
     app.state.reader = make_reader(engine)
     app.state.events = EventWaker()
-    app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
+    app.state.stream_slots = stream_slots(settings)
+    app.state.upload_slots = upload_slots(settings)
+    app.state.validator = Validator(settings)
     app.state.job_metrics = JobMetrics(engine)
     app.state.tokens = TokenCache(settings.token_cache_s)
     app.state.celery = make_celery(settings)
