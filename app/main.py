@@ -20,6 +20,7 @@ from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
 from .stream_slots import StreamSlots
 from .token_cache import TokenCache
+from .validate import Validator
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20
@@ -49,6 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.reader = make_reader(engine)
     app.state.events = EventWaker()
     app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
+    app.state.validator = Validator(settings)
     app.state.job_metrics = JobMetrics(engine)
     app.state.tokens = TokenCache(settings.token_cache_s)
     app.state.celery = make_celery(settings)

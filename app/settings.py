@@ -36,8 +36,16 @@ class Settings(BaseSettings):
     reap_every_s: float = Field(30.0, gt=0)
     redeliver_after_s: float = Field(60.0, gt=0, description="a worker idle this long sends again the queued jobs "
                                      "enqueued before it went idle: their message was lost (e.g. Redis restarted)")
+    # What one dataset may hold, whatever its file takes on disk (a lazy HDF5 file of a few KB may declare millions
+    # of rows): checked against what the file declares before a row is read (issue 15).
+    max_dataset_rows: int = Field(5_000_000, ge=1, description="rows of one dataset; more is a 422")
+    max_dataset_bytes: int = Field(2 * 1024**3, ge=1, description="decoded size of one dataset (rows x bytes of a "
+                                   "float32 transition); more is a 422")
     validate_timeout_s: float = Field(300.0, gt=0)
-    validate_memory_bytes: int = Field(8 * 1024**3, ge=256 * 1024**2, description="address-space cap of the validator")
+    validate_memory_bytes: int = Field(1024**3, ge=256 * 1024**2, description="address-space cap of one validator "
+                                       "child; it reads a block of rows at a time, so this does not grow with datasets")
+    max_concurrent_validations: int = Field(2, ge=1, description="validator children at once per API process; more "
+                                            "wait their turn")
     cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")
     # Observability and API processes (issue 14)
     log_format: Literal["json", "console"] = Field("json", description="JSON lines, or readable ('console', the "

@@ -1,12 +1,17 @@
-"""Validate (and if needed convert) an uploaded dataset in a child process with memory, CPU and file-size limits.
+"""Validate (and if needed convert) an uploaded dataset in a child process with memory, CPU and file-size limits, a
+bounded number at once.
 
 The upload is untrusted: parsing HDF5 or a zip happens in a child forked from a fork server, never in the API
-process, so a hostile or huge file can at worst kill the child. The child sends back the report or the error.
+process, so a hostile or huge file can at worst kill the child. The child checks what the file declares against the
+dataset limits before it reads a row, then reads a block of rows at a time (`drop_engine.data.scan`), so its memory
+does not grow with the dataset, and sends back the report or the error. A `Validator` runs at most
+DROP_MAX_CONCURRENT_VALIDATIONS children at once per API process; the others wait their turn (each still holds its
+upload slot, so the queue is bounded by DROP_MAX_CONCURRENT_UPLOADS), so uploads at once take at most that many
+times DROP_VALIDATE_MEMORY_BYTES.
 """
 from __future__ import annotations
 
 import asyncio
-import json
 import multiprocessing
 import os
 import re
@@ -14,16 +19,42 @@ import resource
 import shutil
 import stat
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ContextManager
 
+from drop_engine.data_rows import DatasetLimits
+
+from .settings import Settings
 from .storage_errors import storage_errno
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 ZIP_MAGIC = b"PK\x03\x04"
+LIMIT_SETTINGS = {"rows": "DROP_MAX_DATASET_ROWS", "decoded_bytes": "DROP_MAX_DATASET_BYTES"}
 
 
 class Invalid(Exception):
     pass
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one validation may take; sent to the child."""
+
+    dataset: DatasetLimits
+    zip_bytes: int  # a zip's entries, expanded
+    file_bytes: int  # a file the child writes: a Minari zip's HDF5 entry, or what it converts that into
+    memory: int  # the child's address space
+    timeout: float
+
+    @classmethod
+    def of(cls, settings: Settings) -> "Limits":
+        zip_bytes = 4 * settings.max_upload_bytes
+        return cls(DatasetLimits(settings.max_dataset_rows, settings.max_dataset_bytes), zip_bytes,
+                   max(zip_bytes, settings.max_dataset_bytes) + (16 << 20), settings.validate_memory_bytes,
+                   settings.validate_timeout_s)
 
 
 # ------------------------------------------------------------------------------------------------ child side
@@ -60,75 +91,6 @@ def _sniff(path: Path, cap: int) -> str:
     raise Invalid("file: not an HDF5 file, an .npz or a Minari zip (unrecognised leading bytes)")
 
 
-def _minari_env(zf: zipfile.ZipFile) -> str | None:
-    """The env id recorded in the dataset's metadata.json, if any."""
-    members = {Path(n).name: n for n in zf.namelist() if Path(n).parent.name == "data" or "/" not in n}
-    if "metadata.json" not in members:
-        return None
-    try:
-        meta = json.loads(zf.read(members["metadata.json"]))
-        spec = meta.get("env_spec")
-        spec = json.loads(spec) if isinstance(spec, str) else spec
-        return (spec or {}).get("id")
-    except (ValueError, AttributeError):
-        return None
-
-
-def _minari_arrays(raw: Path, cap: int) -> dict:
-    """Concatenate Minari episodes into D4RL layout (observations[:-1] / [1:], terminations, truncations)."""
-    import h5py
-    import numpy as np
-
-    from drop_engine.safe_hdf5 import SafeHDF5
-
-    cols: dict[str, list] = {k: [] for k in ("observations", "actions", "rewards", "next_observations", "terminals",
-                                             "timeouts")}
-    try:
-        with h5py.File(raw, "r") as handle:
-            reader = SafeHDF5(handle, cap)
-            episodes = sorted((k for k in handle if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
-            if not episodes:
-                raise Invalid("main_data.hdf5: no episode_N groups")
-            for name in episodes:
-                ep = handle[name]
-                for key in ("observations", "actions", "rewards", "terminations", "truncations"):
-                    if key not in ep or not isinstance(ep[key], h5py.Dataset):
-                        raise Invalid(f"{name}/{key}: missing or not an array (only Box observation spaces are supported)")
-                obs, actions = reader.read(f"{name}/observations"), reader.read(f"{name}/actions")
-                n = len(actions)
-                if len(obs) != n + 1:
-                    raise Invalid(f"{name}/observations: expected {n + 1} rows (actions + 1), found {len(obs)}")
-                cols["observations"].append(obs[:-1])
-                cols["next_observations"].append(obs[1:])
-                cols["actions"].append(actions)
-                cols["rewards"].append(reader.read(f"{name}/rewards"))
-                term = reader.read(f"{name}/terminations").astype(bool)
-                trunc = reader.read(f"{name}/truncations").astype(bool)
-                cols["terminals"].append(term)
-                cols["timeouts"].append(trunc & ~term)
-    except OSError as exc:
-        raise Invalid(f"main_data.hdf5: not a readable HDF5 file ({exc})") from None
-    return {k: np.concatenate(v) for k, v in cols.items()}
-
-
-def _minari_to_hdf5(src: Path, dest: Path, cap: int) -> None:
-    from drop_engine.data import from_arrays, save_hdf5
-
-    raw = dest.with_name("minari_main.hdf5")
-    try:
-        with zipfile.ZipFile(src) as zf:
-            main = next(n for n in zf.namelist() if n.endswith("main_data.hdf5"))
-            # zipfile stops at the entry's declared size (and then fails its CRC), which _check_zip has bounded.
-            with zf.open(main) as fin, raw.open("wb") as fout:
-                shutil.copyfileobj(fin, fout, 1 << 20)
-            env_name = _minari_env(zf)
-        arrays = _minari_arrays(raw, cap)
-    finally:
-        raw.unlink(missing_ok=True)
-    from_arrays(arrays)  # validate before writing
-    save_hdf5(dest, arrays, {"env_name": env_name} if env_name else {})
-
-
 def _link_or_copy(src: Path, target: Path) -> None:
     try:
         os.link(src, target)
@@ -136,23 +98,27 @@ def _link_or_copy(src: Path, target: Path) -> None:
         shutil.copyfile(src, target)
 
 
-def _child(src: Path, dest_dir: Path, cap: int) -> dict:
-    from drop_engine.data import DatasetError, describe, load_dataset
+def _child(src: Path, dest_dir: Path, limits: Limits) -> dict:
+    from drop_engine.data import scan
+    from drop_engine.data_rows import DatasetError, DatasetTooLarge
+
+    from .minari import convert
 
     try:
-        kind = _sniff(src, cap)
-        if kind == "minari":
-            target = dest_dir / "data.hdf5"
-            _minari_to_hdf5(src, target, cap)
-        else:
-            target = dest_dir / ("data.npz" if kind == "npz" else "data.hdf5")
-            _link_or_copy(src, target)
-        try:  # a converted Minari file is our own output, made from arrays already held to `cap`
-            report = describe(load_dataset(target, max_bytes=None if kind == "minari" else cap)).to_dict()
+        kind = _sniff(src, limits.zip_bytes)
+        target = dest_dir / ("data.npz" if kind == "npz" else "data.hdf5")
+        try:
+            if kind == "minari":
+                convert(src, target, limits.dataset)
+            else:
+                _link_or_copy(src, target)
+            report = scan(target, limits.dataset).to_dict()
         except BaseException:
             target.unlink(missing_ok=True)
             raise
         return {"ok": True, "format": kind, "file": target.name, "report": report}
+    except DatasetTooLarge as exc:
+        return {"ok": False, "error": f"{exc} ({LIMIT_SETTINGS[exc.limit]})"}
     except (Invalid, DatasetError) as exc:
         return {"ok": False, "error": str(exc)}
     except zipfile.BadZipFile as exc:
@@ -170,18 +136,19 @@ def _forkserver():
     global _context
     if _context is None:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["app.validate", "drop_engine.data"])
+        ctx.set_forkserver_preload(["app.validate", "app.minari", "drop_engine.data"])
         _context = ctx
     return _context
 
 
-def _entry(conn, src: str, dest_dir: str, cap: int, memory: int, cpu_s: int) -> None:
+def _entry(conn, src: str, dest_dir: str, limits: Limits) -> None:
     """The child: limits first, then parse; the answer goes back over the pipe."""
-    resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
+    cpu_s = int(limits.timeout) + 1
+    resource.setrlimit(resource.RLIMIT_AS, (limits.memory, limits.memory))
     resource.setrlimit(resource.RLIMIT_CPU, (cpu_s, cpu_s + 5))
-    resource.setrlimit(resource.RLIMIT_FSIZE, (cap + (1 << 20), cap + (1 << 20)))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limits.file_bytes, limits.file_bytes))
     try:
-        out = _child(Path(src), Path(dest_dir), cap)
+        out = _child(Path(src), Path(dest_dir), limits)
     except BaseException as exc:  # anything unexpected is still the file's fault, said without a traceback
         # ...unless the disk is full or read-only: then the parent raises the OSError it is.
         out = {"ok": False, "error": f"file: cannot be read ({type(exc).__name__}: {str(exc)[:200]})",
@@ -190,16 +157,15 @@ def _entry(conn, src: str, dest_dir: str, cap: int, memory: int, cpu_s: int) -> 
     conn.close()
 
 
-def _run(src: Path, dest_dir: Path, cap: int, memory: int, timeout: float) -> dict:
+def _run(src: Path, dest_dir: Path, limits: Limits) -> dict:
     ctx = _forkserver()
     receiver, sender = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_entry, args=(sender, str(src), str(dest_dir), cap, memory, int(timeout) + 1),
-                       daemon=True)
+    proc = ctx.Process(target=_entry, args=(sender, str(src), str(dest_dir), limits), daemon=True)
     proc.start()
     sender.close()
     try:
-        if not receiver.poll(timeout):
-            raise Invalid(f"file: validation did not finish within {timeout:.0f} s")
+        if not receiver.poll(limits.timeout):
+            raise Invalid(f"file: validation did not finish within {limits.timeout:.0f} s")
         try:
             return receiver.recv()
         except EOFError:
@@ -213,12 +179,24 @@ def _run(src: Path, dest_dir: Path, cap: int, memory: int, timeout: float) -> di
         proc.join()
 
 
-async def validate_file(src: Path, dest_dir: Path, *, memory: int, timeout: float, max_bytes: int) -> dict:
-    """Validate in a limited child process; returns {"format", "file", "report"} or raises Invalid with the message
-    for the client. A Minari zip may expand to at most 4x the upload limit."""
-    result = await asyncio.to_thread(_run, src, dest_dir, 4 * max_bytes, memory, timeout)
-    if result.get("errno"):
-        raise OSError(result["errno"], os.strerror(result["errno"]))
-    if not result["ok"]:
-        raise Invalid(result["error"])
-    return result
+class Validator:
+    """The API process's validations: at most `DROP_MAX_CONCURRENT_VALIDATIONS` children at once, the rest queued in
+    arrival order (a queued one whose request is cancelled never starts)."""
+
+    def __init__(self, settings: Settings):
+        self.limits = Limits.of(settings)
+        self._pool = ThreadPoolExecutor(settings.max_concurrent_validations, thread_name_prefix="validate")
+
+    async def validate(self, src: Path, dest_dir: Path, timer: ContextManager = nullcontext()) -> dict:
+        """{"format", "file", "report"} of the file at `src`, converted into `dest_dir`, or Invalid with the message
+        for the client. `timer` is entered when the child starts, not while the validation waits its turn."""
+        def timed() -> dict:
+            with timer:
+                return _run(src, dest_dir, self.limits)
+
+        result = await asyncio.get_running_loop().run_in_executor(self._pool, timed)
+        if result.get("errno"):
+            raise OSError(result["errno"], os.strerror(result["errno"]))
+        if not result["ok"]:
+            raise Invalid(result["error"])
+        return result

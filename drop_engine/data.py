@@ -1,28 +1,27 @@
 """Offline datasets: load D4RL-layout HDF5 or .npz, validate, describe, and hand tensors to the trainer.
 
 Every problem with a file is one `DatasetError` whose message names the key and what is wrong with it, because the
-service shows that message to the person who uploaded the file.
+service shows that message to the person who uploaded the file. `scan` checks a file a block of rows at a time for
+that service, and reports what `describe(load_dataset(...))` would, without holding the dataset in memory.
 """
 from __future__ import annotations
 
 import hashlib
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Iterator, Mapping
 
 import numpy as np
 
 from .atomic import atomic_path
+from .data_rows import (OPTIONAL, REQUIRED, Block, DatasetError, DatasetLimits, Layout, Rows, check_rows, layout,
+                        require_rows)
 from .envs import envs_matching, get_env
 
-REQUIRED = ("observations", "actions", "rewards", "terminals")
-OPTIONAL = ("next_observations", "timeouts")
-INFO_KEYS = ("infos/qpos", "infos/qvel")
-
-
-class DatasetError(ValueError):
-    """A dataset that cannot be used; the message says which key and why."""
+BLOCK_BYTES = 16 << 20  # file bytes `scan` reads at once
 
 
 @dataclass
@@ -90,7 +89,82 @@ class DatasetReport:
         return asdict(self)
 
 
-def _read_hdf5(path: Path, max_bytes: int | None) -> tuple[dict[str, np.ndarray], dict]:
+@dataclass
+class _Tally:
+    """What a report says about rows, added up block by block."""
+
+    transitions: int = 0
+    reward_min: float = math.inf
+    reward_max: float = -math.inf
+    reward_sum: float = 0.0
+    terminals: int = 0
+    timeouts: int = 0
+    ends: int = 0
+    last_ends: bool = True  # the last row so far ends an episode
+    max_abs_action: float = 0.0
+    dropped: int = 0
+
+    def add(self, rows: Block | Dataset, dropped: int = 0) -> None:
+        self.dropped += dropped
+        if not len(rows.rewards):
+            return
+        ends = rows.terminals | rows.timeouts
+        self.transitions += len(rows.rewards)
+        self.reward_min = min(self.reward_min, float(rows.rewards.min()))
+        self.reward_max = max(self.reward_max, float(rows.rewards.max()))
+        self.reward_sum += float(rows.rewards.sum(dtype=np.float64))
+        self.terminals += int(rows.terminals.sum())
+        self.timeouts += int(rows.timeouts.sum())
+        self.ends += int(ends.sum())
+        self.last_ends = bool(ends[-1])
+        self.max_abs_action = max(self.max_abs_action, float(np.abs(rows.actions).max(initial=0.0)))
+
+    def warnings(self, lay: Layout) -> list[str]:
+        notes = [] if lay.has_timeouts else ["timeouts: missing, assumed all false"]
+        if not lay.has_next:
+            notes.append(f"next_observations: missing, rebuilt from consecutive rows ({self.dropped} rows dropped)")
+        if self.max_abs_action > 1.0 + 1e-6:
+            notes.append(f"actions: values outside [-1, 1] (max |a| = {self.max_abs_action:.3g}); the policy is "
+                         "tanh-bounded")
+        return notes
+
+    def report(self, obs_dim: int, act_dim: int, attrs: Mapping, warnings: list[str]) -> DatasetReport:
+        env, candidates = _env(attrs, obs_dim, act_dim)
+        return DatasetReport(
+            transitions=self.transitions,
+            episodes=self.ends + int(not self.last_ends),
+            obs_dim=obs_dim,
+            act_dim=act_dim,
+            reward_min=self.reward_min,
+            reward_max=self.reward_max,
+            reward_mean=self.reward_sum / self.transitions,
+            terminals=self.terminals,
+            timeouts=self.timeouts,
+            env=env,
+            env_candidates=candidates,
+            warnings=warnings,
+        )
+
+
+def _env(attrs: Mapping, obs_dim: int, act_dim: int) -> tuple[str | None, list[str]]:
+    """(the env the file records if known, else the one its dims match if exactly one; every env of its dims)."""
+    candidates = envs_matching(obs_dim, act_dim)
+    recorded = str(attrs.get("env_name") or attrs.get("env") or "")
+    try:
+        return get_env(recorded).name if recorded else candidates[0] if len(candidates) == 1 else None, candidates
+    except KeyError:
+        return (candidates[0] if len(candidates) == 1 else None), candidates
+
+
+@contextmanager
+def _arrays(path: Path) -> Iterator[tuple[dict[str, Rows], dict]]:
+    """The file's arrays, unread (their rows are read when sliced), and its attributes."""
+    if path.suffix == ".npz":
+        from .npz_rows import open_npz
+
+        with open_npz(path, REQUIRED + OPTIONAL) as arrays:
+            yield arrays, {}
+        return
     import h5py
 
     from .safe_hdf5 import SafeHDF5
@@ -100,134 +174,59 @@ def _read_hdf5(path: Path, max_bytes: int | None) -> tuple[dict[str, np.ndarray]
     except OSError as exc:
         raise DatasetError(f"file: not a readable HDF5 file ({exc})") from None
     with handle:
-        reader = SafeHDF5(handle, max_bytes)
-        arrays = {key: reader.read(key) for key in REQUIRED + OPTIONAL + INFO_KEYS if key in handle}
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in handle.attrs.items()}
-    return arrays, attrs
+        reader = SafeHDF5(handle)
+        arrays = {key: reader.array(key) for key in REQUIRED + OPTIONAL if key in handle}
+        yield arrays, {k: (v.decode() if isinstance(v, bytes) else v) for k, v in handle.attrs.items()}
 
 
-def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files if k in REQUIRED + OPTIONAL + INFO_KEYS}
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"file: not a readable .npz file ({exc})") from None
-    return arrays, {}
-
-
-def _as_float(key: str, value: np.ndarray, ndim: int) -> np.ndarray:
-    if not np.issubdtype(value.dtype, np.number) and value.dtype != np.bool_:
-        raise DatasetError(f"{key}: must be numeric, found dtype {value.dtype}")
-    if value.ndim != ndim:
-        shape = "(N, dim)" if ndim == 2 else "(N,)"
-        raise DatasetError(f"{key}: expected shape {shape}, found {value.shape}")
-    value = value.astype(np.float32, copy=False)
-    if not np.isfinite(value).all():
-        bad = int((~np.isfinite(value)).any(axis=tuple(range(1, value.ndim))).sum())
-        raise DatasetError(f"{key}: {bad} rows contain NaN or inf")
-    return value
-
-
-def _as_flags(key: str, value: np.ndarray) -> np.ndarray:
-    value = value.reshape(-1) if value.ndim == 2 and value.shape[1] == 1 else value
-    if value.ndim != 1:
-        raise DatasetError(f"{key}: expected shape (N,), found {value.shape}")
-    if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
-        raise DatasetError(f"{key}: must be boolean or 0/1, found dtype {value.dtype}")
-    if not np.isin(value, (0, 1)).all():
-        raise DatasetError(f"{key}: must hold only 0/1 or booleans")
-    return value.astype(bool)
-
-
-def from_arrays(arrays: dict[str, np.ndarray], attrs: dict | None = None, env: str | None = None) -> Dataset:
-    """Validate raw arrays and build a Dataset; `env` (if given) must match the dims."""
-    for key in REQUIRED:
-        if key not in arrays:
-            raise DatasetError(f"{key}: missing (a D4RL dataset needs {', '.join(REQUIRED)})")
-    obs = _as_float("observations", np.asarray(arrays["observations"]), 2)
-    n = len(obs)
-    if n == 0:
-        raise DatasetError("observations: dataset is empty")
-    act = _as_float("actions", np.asarray(arrays["actions"]), 2)
-    rewards = np.asarray(arrays["rewards"])
-    rewards = _as_float("rewards", rewards.reshape(-1) if rewards.ndim == 2 and rewards.shape[1] == 1 else rewards, 1)
-    terminals = _as_flags("terminals", np.asarray(arrays["terminals"]))
-    notes: list[str] = []
-    if "timeouts" in arrays:
-        timeouts = _as_flags("timeouts", np.asarray(arrays["timeouts"]))
-    else:
-        timeouts = np.zeros(n, dtype=bool)
-        notes.append("timeouts: missing, assumed all false")
-    for key, value in (("actions", act), ("rewards", rewards), ("terminals", terminals), ("timeouts", timeouts)):
-        if len(value) != n:
-            raise DatasetError(f"{key}: has {len(value)} rows but observations has {n}")
-    if "next_observations" in arrays:
-        next_obs = _as_float("next_observations", np.asarray(arrays["next_observations"]), 2)
-        if next_obs.shape != obs.shape:
-            raise DatasetError(f"next_observations: shape {next_obs.shape} differs from observations {obs.shape}")
-    else:
-        # Rebuild from consecutive rows; rows that end an episode have no successor in the file and are dropped,
-        # and the row before each dropped one now ends its (truncated) episode.
-        ends = terminals | timeouts
-        ends[-1] = True
-        keep = ~ends
-        next_obs = np.empty_like(obs)
-        next_obs[:-1] = obs[1:]
-        obs, act, rewards, next_obs = obs[keep], act[keep], rewards[keep], next_obs[keep]
-        terminals, timeouts = terminals[keep], np.append(ends[1:], True)[keep]
-        notes.append(f"next_observations: missing, rebuilt from consecutive rows ({int((~keep).sum())} rows dropped)")
-        if len(obs) == 0:
-            raise DatasetError("next_observations: missing, and no rows are left after rebuilding them")
+def from_arrays(arrays: Mapping[str, Rows], attrs: dict | None = None, env: str | None = None) -> Dataset:
+    """Validate arrays (all rows, as one block) and build a Dataset; `env` (if given) must match the dims."""
+    lay = layout(arrays)
+    block = check_rows(arrays, lay, 0, lay.shape.rows)
+    require_rows(len(block.observations))
     if env is not None:
         spec = get_env(env)
-        if (obs.shape[1], act.shape[1]) != (spec.obs_dim, spec.act_dim):
+        if (lay.shape.obs_dim, lay.shape.act_dim) != (spec.obs_dim, spec.act_dim):
             raise DatasetError(
-                f"observations/actions: dims ({obs.shape[1]}, {act.shape[1]}) do not match {spec.name} "
+                f"observations/actions: dims ({lay.shape.obs_dim}, {lay.shape.act_dim}) do not match {spec.name} "
                 f"({spec.obs_dim}, {spec.act_dim})"
             )
-    if np.abs(act).max() > 1.0 + 1e-6:
-        notes.append(f"actions: values outside [-1, 1] (max |a| = {np.abs(act).max():.3g}); the policy is tanh-bounded")
-    return Dataset(obs, act, rewards, next_obs, terminals, timeouts, dict(attrs or {}), notes)
+    tally = _Tally()
+    tally.add(block, block.dropped)
+    return Dataset(block.observations, block.actions, block.rewards, block.next_observations, block.terminals,
+                   block.timeouts, dict(attrs or {}), tally.warnings(lay))
 
 
-def load_dataset(path: str | Path, env: str | None = None, max_bytes: int | None = None) -> Dataset:
-    """Load and validate an HDF5 (.hdf5/.h5) or .npz dataset; `max_bytes` caps what an HDF5 file may declare."""
+def load_dataset(path: str | Path, env: str | None = None) -> Dataset:
+    """Load and validate an HDF5 (.hdf5/.h5) or .npz dataset."""
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"file: {path} does not exist")
-    if path.suffix == ".npz":
-        arrays, attrs = _read_npz(path)
-    else:
-        arrays, attrs = _read_hdf5(path, max_bytes)
-    return from_arrays(arrays, attrs, env)
+    with _arrays(path) as (arrays, attrs):
+        return from_arrays(arrays, attrs, env)
+
+
+def scan(path: str | Path, limits: DatasetLimits = DatasetLimits(), block_bytes: int = BLOCK_BYTES) -> DatasetReport:
+    """Validate a file and report on it as `describe(load_dataset(path))` would, holding one block of rows at a time;
+    a file that declares more than `limits` is refused (DatasetTooLarge) before any row is read."""
+    path = Path(path)
+    with _arrays(path) as (arrays, attrs):
+        lay = layout(arrays, limits)
+        row_bytes = sum(arrays[k].dtype.itemsize * math.prod(arrays[k].shape[1:]) for k in lay.keys)
+        step = max(1, block_bytes // row_bytes)
+        tally = _Tally()
+        for start in range(0, lay.shape.rows, step):
+            block = check_rows(arrays, lay, start, min(start + step, lay.shape.rows))
+            tally.add(block, block.dropped)
+    require_rows(tally.transitions)
+    return tally.report(lay.shape.obs_dim, lay.shape.act_dim, attrs, tally.warnings(lay))
 
 
 def describe(dataset: Dataset) -> DatasetReport:
     """The report the service returns for an upload."""
-    candidates = envs_matching(dataset.obs_dim, dataset.act_dim)
-    recorded = str(dataset.attrs.get("env_name") or dataset.attrs.get("env") or "")
-    env = None
-    if recorded:
-        try:
-            env = get_env(recorded).name
-        except KeyError:
-            env = None
-    if env is None and len(candidates) == 1:
-        env = candidates[0]
-    return DatasetReport(
-        transitions=len(dataset),
-        episodes=dataset.episodes,
-        obs_dim=dataset.obs_dim,
-        act_dim=dataset.act_dim,
-        reward_min=float(dataset.rewards.min()),
-        reward_max=float(dataset.rewards.max()),
-        reward_mean=float(dataset.rewards.mean()),
-        terminals=int(dataset.terminals.sum()),
-        timeouts=int(dataset.timeouts.sum()),
-        env=env,
-        env_candidates=candidates,
-        warnings=list(dataset.warnings),
-    )
+    tally = _Tally()
+    tally.add(dataset)
+    return tally.report(dataset.obs_dim, dataset.act_dim, dataset.attrs, list(dataset.warnings))
 
 
 def save_hdf5(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict | None = None, compress: bool = True) -> None:

@@ -14,9 +14,9 @@ from math import gcd
 from typing import Sequence
 
 from .config import TrainConfig
+from .data_rows import FLOAT, DataShape
 
 RUNTIME_BYTES = 400 << 20  # the process: Python, torch and MuJoCo loaded (340 MiB), and torch's first allocations
-FLOAT = 4  # bytes of a float32
 INDEX = 8  # bytes of an int64
 TRAINED = 4  # copies of a trained parameter: its value, its gradient and Adam's two moments
 SAC_METRICS = 6  # losses of the critic, actor and temperature, alpha, Q mean, entropy
@@ -24,18 +24,6 @@ ROLLOUT_METRICS = 7  # penalty mean, std, max and share, reward mean, length mea
 DIAG_METRICS = 4  # ensemble disagreement and reward on data and on model rows
 DICE_METRICS = 4  # objective, tau mean, std and negative share on the data
 TAU_METRICS = 3  # tau mean, min and max on the rollouts
-
-
-@dataclass(frozen=True)
-class DataShape:
-    rows: int
-    obs_dim: int
-    act_dim: int
-
-    @property
-    def row_floats(self) -> int:
-        """Floats of one transition: observation, action, reward, next observation, done."""
-        return 2 * self.obs_dim + self.act_dim + 2
 
 
 @dataclass(frozen=True)

@@ -1,18 +1,16 @@
 """Read arrays from an HDF5 file nobody vouches for, such as an upload.
 
 HDF5 lets a file make a read reach other files (external links, external raw storage, virtual datasets), load plugin
-code (a filter that is not built in) or allocate whatever size a header declares. All of that shows in the file's
-structure, so it is checked before any array is read, and refused with a message that names the key.
+code (a filter that is not built in) or declare any size. All of that shows in the file's structure, so it is checked
+before any array is read, and refused with a message that names the key; the caller checks the declared shapes.
 """
 from __future__ import annotations
-
-import math
 
 import h5py
 import numpy as np
 from h5py import h5d, h5l
 
-from .data import DatasetError
+from .data_rows import DatasetError
 
 # gzip, shuffle and fletcher32 are built into HDF5; lzf is built into h5py, which wrote many existing files.
 ALLOWED_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32", 32000: "lzf"}
@@ -43,28 +41,21 @@ def _kind(dtype: np.dtype) -> str:
 
 
 class SafeHDF5:
-    """An open file whose arrays are read only after their storage, filters and dtype pass; `max_bytes` (if set)
-    bounds the declared uncompressed size of everything read, so a tiny file cannot claim terabytes."""
+    """An open file whose arrays are handed out only after their storage, filters and dtype pass; their rows are read
+    when the caller slices them, after it has checked what their shapes declare."""
 
-    def __init__(self, handle: h5py.File, max_bytes: int | None = None):
+    def __init__(self, handle: h5py.File):
         found = _foreign_link(handle)
         if found is not None:
             name, kind = found
             what = "an external link to another file" if kind == h5l.TYPE_EXTERNAL else "a user-defined link"
             raise DatasetError(f"{name}: {what}; only links inside the file are allowed")
-        self.handle, self.max_bytes, self.used = handle, max_bytes, 0
+        self.handle = handle
 
-    def read(self, key: str) -> np.ndarray:
+    def array(self, key: str) -> h5py.Dataset:
         node = self.handle[key]
         if not isinstance(node, h5py.Dataset):
             raise DatasetError(f"{key}: expected an array, found a {type(node).__name__.lower()}")
-        self._check(key, node)
-        try:
-            return node[()]
-        except (OSError, ValueError, TypeError) as exc:
-            raise DatasetError(f"{key}: cannot be read ({exc})") from None
-
-    def _check(self, key: str, node: h5py.Dataset) -> None:
         plist = node.id.get_create_plist()
         if plist.get_layout() == h5d.VIRTUAL:
             raise DatasetError(f"{key}: a virtual dataset, whose data would come from other files; not allowed")
@@ -78,8 +69,4 @@ class SafeHDF5:
         if node.dtype.kind not in NUMERIC_KINDS:
             raise DatasetError(f"{key}: must be numeric (bool, int or float), found {_kind(node.dtype)} "
                                f"(dtype {node.dtype})")
-        size = math.prod(node.shape) * node.dtype.itemsize
-        if self.max_bytes is not None and self.used + size > self.max_bytes:
-            raise DatasetError(f"{key}: declares shape {node.shape} of {node.dtype} ({size} bytes uncompressed), "
-                               f"over the limit of {self.max_bytes} bytes for the whole dataset")
-        self.used += size
+        return node

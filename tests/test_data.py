@@ -3,7 +3,8 @@ import h5py
 import numpy as np
 import pytest
 
-from drop_engine.data import DatasetError, describe, from_arrays, load_dataset, save_hdf5
+from drop_engine.data import DatasetError, describe, from_arrays, load_dataset, save_hdf5, scan
+from drop_engine.data_rows import DatasetLimits, DatasetTooLarge
 
 
 def _write(path, arrays):
@@ -82,8 +83,8 @@ def _nan():
     (_without("rewards"), None, "rewards: missing"),
     (_with("actions", np.zeros((4, 3))), None, "actions: has 4 rows but observations has 5"),
     (_with("terminals", np.zeros(6)), None, "terminals: has 6 rows"),
-    (_nan(), None, "observations: 1 rows contain NaN or inf"),
-    (_with("rewards", np.array([0, 0, np.inf, 0, 0])), None, "rewards: 1 rows contain NaN or inf"),
+    (_nan(), None, "observations: row 2 contains NaN or inf"),
+    (_with("rewards", np.array([0, 0, np.inf, 0, 0])), None, "rewards: row 2 contains NaN or inf"),
     (_with("terminals", np.array([0, 2, 0, 0, 0])), None, "terminals: must hold only 0/1"),
     (_with("observations", np.zeros((0, 11))), None, "observations: dataset is empty"),
     (_with("observations", np.array(["a"] * 5)), None, "observations: must be numeric"),
@@ -109,3 +110,67 @@ def test_bad_files(tmp_path):
         f.create_group("observations")
     with pytest.raises(DatasetError, match="observations: expected an array"):
         load_dataset(grouped)
+
+
+def _drop_next(arrays):
+    return {k: v for k, v in arrays.items() if k != "next_observations" and "/" not in k}
+
+
+@pytest.mark.parametrize("kind", ["hdf5", "hdf5-without-next", "npz-without-next", "npz-fortran"])
+def test_scan_reports_what_loading_describes(tmp_path, hopper_arrays, kind):
+    """Blocks of 7 rows: every block boundary the rebuild of next observations and the episode count cross."""
+    arrays = {k: v for k, v in hopper_arrays.items() if "/" not in k}
+    arrays = arrays if kind == "hdf5" else _drop_next(arrays)
+    if kind.startswith("npz"):
+        path = tmp_path / "d.npz"
+        if kind == "npz-fortran":
+            arrays["observations"] = np.asfortranarray(arrays["observations"])
+        np.savez(path, **arrays)
+    else:
+        path = tmp_path / "d.hdf5"
+        save_hdf5(path, arrays, {"env_name": "Hopper-v4"})
+    row_bytes = sum(v.dtype.itemsize * (v.shape[1] if v.ndim == 2 else 1) for v in arrays.values())
+    scanned = scan(path, block_bytes=7 * row_bytes).to_dict()
+    described = describe(load_dataset(path)).to_dict()
+    assert scanned.pop("reward_mean") == pytest.approx(described.pop("reward_mean"), rel=1e-5)
+    assert scanned == described
+    assert scanned["transitions"] < len(arrays["observations"]) or kind == "hdf5"
+
+
+def _lazy_file(path, rows: int, obs_dim: int = 11, act_dim: int = 3):
+    """Chunked arrays that declare `rows` rows and hold none: a few KB on disk, whatever size once read."""
+    with h5py.File(path, "w") as f:
+        for key, shape in [("observations", (rows, obs_dim)), ("actions", (rows, act_dim)), ("rewards", (rows,)),
+                           ("terminals", (rows,)), ("timeouts", (rows,))]:
+            f.create_dataset(key, shape=shape, dtype="f4", chunks=(min(rows, 10_000), *shape[1:]))
+    return path
+
+
+def test_scan_refuses_what_a_lazy_file_declares_before_reading(tmp_path):
+    path = _lazy_file(tmp_path / "lazy.hdf5", 10_000_000)
+    assert path.stat().st_size < 100_000
+    with pytest.raises(DatasetTooLarge, match=r"observations: declares 10000000 rows \(shape \(10000000, 11\)\), "
+                                              "over the limit of 1000 rows") as info:
+        scan(path, DatasetLimits(rows=1000))
+    assert info.value.limit == "rows"
+    row = (2 * 11 + 3 + 2) * 4
+    with pytest.raises(DatasetTooLarge, match=f"10000000 rows of {row} bytes decode to {10_000_000 * row} bytes, "
+                                              "over the limit of 1000000 bytes") as info:
+        scan(path, DatasetLimits(decoded_bytes=1_000_000))
+    assert info.value.limit == "decoded_bytes"
+
+
+def test_scan_holds_one_block_not_the_dataset(tmp_path):
+    """1,000,000 declared rows (about 100 MB once read, twice that converted): scanned in 1 MB blocks, the peak of
+    what numpy allocates stays within a few blocks."""
+    import tracemalloc
+
+    path = _lazy_file(tmp_path / "lazy.hdf5", 1_000_000)
+    tracemalloc.start()
+    try:
+        report = scan(path, block_bytes=1 << 20)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert report.transitions == 999_999 and report.episodes == 1  # no next_observations: the last row is dropped
+    assert peak < 16 << 20, peak

@@ -4,6 +4,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+import zlib
 from pathlib import Path
 
 import h5py
@@ -149,23 +150,35 @@ def test_bad_zip(alice, clean):
     _assert_problem(r, 422, "Minari")
 
 
+def _one_chunk_of_zeros(ds, nbytes: int) -> None:
+    """Write `ds`'s single chunk as gzip of `nbytes` zeros without holding them: a few MB on disk."""
+    deflate, piece = zlib.compressobj(9), bytes(1 << 20)
+    body = b"".join(deflate.compress(piece) for _ in range(nbytes // len(piece))) + deflate.flush()
+    ds.id.write_direct_chunk((0, 0), body)
+
+
 def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
-    """4 KB on disk, 880 MB once read, under a dataset limit set high enough (4 GB) to let the read start: the child
-    runs out of its 1 GB address space, the API process is untouched. (Within the service's limits the declared size
-    already refuses it; see test_hostile_uploads.)"""
+    """One gzip chunk of 700 MB of zeros, under dataset limits set high enough to let the read start: reading any row
+    of it inflates the whole chunk, which the child's 512 MB address space cannot hold (HDF5 says its filter failed),
+    and the API process is untouched. (Within the service's limits the declared size already refuses it; see
+    test_hostile_uploads.)"""
     import asyncio
 
-    from app.validate import Invalid, validate_file
+    from app.settings import Settings
+    from app.validate import Invalid, Validator
 
+    rows = 16_000_000
     bomb = tmp_path / "bomb.hdf5"
     with h5py.File(bomb, "w") as f:
-        f.create_dataset("observations", shape=(20_000_000, 11), dtype="f4", compression="gzip", chunks=(100_000, 11))
-        for key, value in _arrays(10).items():
-            if key != "observations":
-                f.create_dataset(key, data=value)
-    assert bomb.stat().st_size < 100_000
+        obs = f.create_dataset("observations", shape=(rows, 11), dtype="f4", compression="gzip", chunks=(rows, 11))
+        _one_chunk_of_zeros(obs, rows * 11 * 4)
+        for key, width in (("actions", (3,)), ("rewards", ()), ("terminals", ()), ("timeouts", ())):
+            f.create_dataset(key, shape=(rows, *width), dtype="f4", chunks=(100_000, *width))
+    assert bomb.stat().st_size < 10_000_000
     out = tmp_path / "out"
     out.mkdir()
-    with pytest.raises(Invalid, match="memory"):
-        asyncio.run(validate_file(bomb, out, memory=1024**3, timeout=60, max_bytes=10**9))
+    validator = Validator(Settings(data_dir=tmp_path, validate_memory_bytes=512 * 1024**2, max_dataset_rows=10**8,
+                                   max_dataset_bytes=10**10, validate_timeout_s=60))
+    with pytest.raises(Invalid, match="observations: cannot be read .*filter returned failure"):
+        asyncio.run(validator.validate(bomb, out))
     assert not any(out.iterdir())

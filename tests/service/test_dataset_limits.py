@@ -1,0 +1,83 @@
+"""What one dataset may hold, whatever its file takes on disk: a few KB of lazy HDF5 that declare many rows is refused
+for the rows or decoded bytes it declares, and validations run a bounded number at once."""
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import httpx
+
+from drop_engine.data_rows import DataShape
+
+from .private_api import private_api, tiny_npz
+
+ROWS = 100_000  # declared; 99,999 transitions once the last row (no successor) is dropped
+DECODED = DataShape(ROWS - 1, 11, 3).decoded_bytes  # 10.8 MB
+
+
+def _lazy(path: Path, rows: int = ROWS) -> Path:
+    """Chunked arrays declaring `rows` rows of a hopper dataset, no chunk written: a few KB on disk."""
+    with h5py.File(path, "w") as f:
+        for key, shape in [("observations", (rows, 11)), ("actions", (rows, 3)), ("rewards", (rows,)),
+                           ("terminals", (rows,)), ("timeouts", (rows,))]:
+            f.create_dataset(key, shape=shape, dtype="f4", chunks=(min(rows, 10_000), *shape[1:]), compression="gzip")
+    return path
+
+
+def _problem(r: httpx.Response, status: int, code: str, *needles: str) -> dict:
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert body["code"] == code, body
+    for needle in needles:
+        assert needle in body["detail"], body
+    return body
+
+
+def test_a_lazy_file_is_refused_for_the_rows_it_declares(settings, tmp_path):
+    path = _lazy(tmp_path / "lazy.hdf5")
+    assert path.stat().st_size < 20_000
+    with private_api(settings, max_dataset_rows=ROWS - 1) as (_, client):
+        r = client.post("/v1/datasets", content=path.read_bytes())
+        _problem(r, 422, "invalid_dataset", f"observations: declares {ROWS} rows", f"limit of {ROWS - 1} rows",
+                 "DROP_MAX_DATASET_ROWS")
+    with private_api(settings, max_dataset_bytes=DECODED) as (_, client):
+        r = client.post("/v1/datasets", content=path.read_bytes())
+        _problem(r, 422, "invalid_dataset", f"decode to {DataShape(ROWS, 11, 3).decoded_bytes} bytes",
+                 f"limit of {DECODED} bytes", "DROP_MAX_DATASET_BYTES")
+    assert not list((settings.data_dir / "uploads").glob("*.part"))
+
+
+def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):
+    """Three uploads at once with one validator slot: each validation runs alone, and all three are accepted."""
+    import app.validate
+
+    running, peak, lock = 0, 0, threading.Lock()
+    run = app.validate._run
+
+    def counted(*args):
+        nonlocal running, peak
+        with lock:
+            running += 1
+            peak = max(peak, running)
+        try:
+            time.sleep(0.3)  # long enough for the others to arrive
+            return run(*args)
+        finally:
+            with lock:
+                running -= 1
+
+    monkeypatch.setattr(app.validate, "_run", counted)
+    with private_api(settings, max_concurrent_validations=1) as (app_, client):
+        async def upload_three() -> list[httpx.Response]:
+            transport = httpx.ASGITransport(app=app_)
+            async with httpx.AsyncClient(transport=transport, base_url="http://test", headers=client.headers) as c:
+                return await asyncio.gather(*(c.post("/v1/datasets", content=tiny_npz(seed)) for seed in range(3)))
+
+        responses = asyncio.run(upload_three())
+        assert [r.status_code for r in responses] == [201] * 3, [r.text for r in responses]
+        assert peak == 1
+        for r in responses:
+            assert client.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
