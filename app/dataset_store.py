@@ -7,6 +7,8 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from drop_engine.data_rows import DataShape
+
 from . import quotas
 from .deps import owned_dataset
 from .ids import new_id
@@ -20,7 +22,7 @@ from .validate import Invalid
 
 
 def _save(s: Session, row: Dataset, settings: Settings) -> None:
-    quotas.check_storage(s, row.owner_id, settings, row.size_bytes)
+    quotas.check_storage(s, row.owner_id, settings, row)
     s.add(row)
     s.commit()
 
@@ -35,7 +37,9 @@ async def _validate(request: Request, upload: Upload, dataset_id: str, owner: st
         raise Problem(422, "invalid_dataset", str(exc)) from None
     report = result["report"]
     return Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
-                   sha256=upload.sha256, size_bytes=upload.size, path=str((target / result["file"]).resolve()), env=report.get("env"), obs_dim=report["obs_dim"],
+                   sha256=upload.sha256, size_bytes=upload.size,
+                   decoded_bytes=DataShape(report["transitions"], report["obs_dim"], report["act_dim"]).decoded_bytes,
+                   path=str((target / result["file"]).resolve()), env=report.get("env"), obs_dim=report["obs_dim"],
                    act_dim=report["act_dim"], report=report)
 
 

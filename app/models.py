@@ -4,7 +4,9 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from typing import Any
 
-from sqlalchemy import JSON, BigInteger, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint
+from sqlalchemy import (JSON, BigInteger, ColumnElement, DateTime, Float, ForeignKey, Index, Integer, String, Text,
+                        UniqueConstraint, case)
+from sqlalchemy.ext.hybrid import hybrid_property
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
@@ -64,12 +66,23 @@ class Dataset(Base):
     format: Mapped[str] = mapped_column(String(20))
     sha256: Mapped[str] = mapped_column(String(64))
     size_bytes: Mapped[int] = mapped_column(BigInteger)
+    decoded_bytes: Mapped[int] = mapped_column(BigInteger, server_default="0")  # rows x bytes of a transition
     path: Mapped[str] = mapped_column(Text)
     env: Mapped[str | None] = mapped_column(String(50))
     obs_dim: Mapped[int] = mapped_column(Integer)
     act_dim: Mapped[int] = mapped_column(Integer)
     report: Mapped[dict[str, Any]]
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    @hybrid_property
+    def charged_bytes(self) -> int:
+        """What the dataset counts toward its owner's storage quota: its file, or what it decodes to if more."""
+        return max(self.size_bytes, self.decoded_bytes)
+
+    @charged_bytes.inplace.expression
+    @classmethod
+    def _charged_bytes(cls) -> ColumnElement[int]:
+        return case((cls.decoded_bytes > cls.size_bytes, cls.decoded_bytes), else_=cls.size_bytes)
 
 
 class Job(Base):

@@ -2,7 +2,8 @@
 
 Each check counts under a lock on the owner's row, taken by a no-op UPDATE: PostgreSQL holds that row lock and SQLite
 its database write lock until the transaction ends, so two requests of one owner at once cannot both count the same
-total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock.
+total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock. A dataset counts
+at the larger of its file size and its decoded size (`Dataset.charged_bytes`).
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ def check_active_jobs(s: Session, owner_id: str, settings: Settings) -> None:
 
 
 def stored_bytes(s: Session, owner_id: str) -> int:
-    return s.scalar(select(func.coalesce(func.sum(Dataset.size_bytes), 0)).where(Dataset.owner_id == owner_id))
+    return s.scalar(select(func.coalesce(func.sum(Dataset.charged_bytes), 0)).where(Dataset.owner_id == owner_id))
 
 
 def _storage_problem(stored: int, quota: int, detail: str) -> Problem:
@@ -63,10 +64,13 @@ def upload_limit(s: Session, owner_id: str, settings: Settings) -> tuple[int, Ca
     return room, lambda: _storage_problem(stored, quota, f"this upload is larger than the {room} bytes left")
 
 
-def check_storage(s: Session, owner_id: str, settings: Settings, size: int) -> None:
-    """Raise 413 if a new dataset of `size` bytes takes the owner past the quota (recounted under the owner lock, as
-    uploads of one owner may run side by side); the lock lasts until the caller commits."""
+def check_storage(s: Session, owner_id: str, settings: Settings, row: Dataset) -> None:
+    """Raise 413 if the new dataset `row` takes the owner past the quota (recounted under the owner lock, as uploads
+    of one owner may run side by side); the lock lasts until the caller commits."""
     _lock_owner(s, owner_id)
     stored, quota = stored_bytes(s, owner_id), settings.max_stored_bytes_per_owner
-    if stored + size > quota:
-        raise _refuse(s, _storage_problem(stored, quota, f"this {size}-byte dataset does not fit"))
+    if stored + row.charged_bytes > quota:
+        detail = (f"this {row.size_bytes}-byte dataset does not fit" if row.charged_bytes == row.size_bytes else
+                  f"this dataset counts {row.charged_bytes} bytes, its decoded size ({row.size_bytes} bytes on disk), "
+                  "and does not fit")
+        raise _refuse(s, _storage_problem(stored, quota, detail))

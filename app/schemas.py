@@ -24,6 +24,8 @@ class DatasetOut(BaseModel):
     name: str
     format: str = Field(description="hdf5 | npz | minari")
     size_bytes: int
+    decoded_bytes: int = Field(description="rows x bytes of a float32 transition: what it takes once loaded; it counts "
+                                           "toward the storage quota when larger than size_bytes")
     sha256: str
     env: str | None = Field(description="the env the dataset's dimensions match, if exactly one")
     obs_dim: int

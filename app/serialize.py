@@ -17,7 +17,7 @@ def iso(value: datetime | None) -> str | None:
 def dataset(row: Dataset) -> dict:
     return {
         "id": row.id, "object": "dataset", "created_at": iso(row.created_at), "name": row.name,
-        "format": row.format, "size_bytes": row.size_bytes, "sha256": row.sha256, "env": row.env,
+        "format": row.format, "size_bytes": row.size_bytes, "decoded_bytes": row.decoded_bytes, "sha256": row.sha256, "env": row.env,
         "obs_dim": row.obs_dim, "act_dim": row.act_dim, "report": row.report,
     }
 

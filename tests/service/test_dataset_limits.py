@@ -1,5 +1,6 @@
 """What one dataset may hold, whatever its file takes on disk: a few KB of lazy HDF5 that declare many rows is refused
-for the rows or decoded bytes it declares, and validations run a bounded number at once."""
+for the rows or decoded bytes it declares, counts toward the storage quota at its decoded size, and validations run a
+bounded number at once."""
 from __future__ import annotations
 
 import asyncio
@@ -48,6 +49,21 @@ def test_a_lazy_file_is_refused_for_the_rows_it_declares(settings, tmp_path):
         _problem(r, 422, "invalid_dataset", f"decode to {DataShape(ROWS, 11, 3).decoded_bytes} bytes",
                  f"limit of {DECODED} bytes", "DROP_MAX_DATASET_BYTES")
     assert not list((settings.data_dir / "uploads").glob("*.part"))
+
+
+def test_a_lazy_file_counts_its_decoded_size_toward_the_quota(settings, tmp_path):
+    """Two lazy files of 10.8 MB decoded each under a 16 MB quota: the first is stored and counts 10.8 MB, the second
+    does not fit, though both files together take a few KB."""
+    path = _lazy(tmp_path / "lazy.hdf5")
+    with private_api(settings, max_stored_bytes_per_owner=16_000_000) as (_, client):
+        first = client.post("/v1/datasets", content=path.read_bytes())
+        assert first.status_code == 201, first.text
+        assert first.json()["decoded_bytes"] == DECODED and first.json()["size_bytes"] == path.stat().st_size
+        assert first.json()["report"]["transitions"] == ROWS - 1
+        second = client.post("/v1/datasets", content=path.read_bytes())
+        _problem(second, 413, "storage_quota_exceeded", f"this dataset counts {DECODED} bytes, its decoded size",
+                 f"your datasets take {DECODED} of the 16000000 bytes")
+        assert client.delete(f"/v1/datasets/{first.json()['id']}").status_code == 204
 
 
 def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):

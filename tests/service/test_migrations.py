@@ -47,3 +47,25 @@ def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
         rows = {r.id: (r.best_epoch, r.final_score) for r in conn.execute(text("SELECT id, best_epoch, final_score FROM jobs"))}
     engine.dispose()
     assert rows == {"job_evaluated": (1, 3.0), "job_queued": (None, None)}
+
+
+def test_upgrade_fills_the_decoded_size_of_recorded_datasets(tmp_path):
+    from alembic import command
+    from sqlalchemy import text
+
+    from app.db import alembic_config, make_engine, upgrade
+
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    command.upgrade(alembic_config(url), "0003")
+    engine = make_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO owners (id, name, created_at) VALUES ('own_1', 'old', CURRENT_TIMESTAMP)"))
+        conn.execute(text(
+            "INSERT INTO datasets (id, owner_id, name, format, sha256, size_bytes, path, env, obs_dim, act_dim, report, "
+            "created_at) VALUES ('ds_1', 'own_1', 'lazy', 'hdf5', '', 7000, '/x', 'hopper', 11, 3, "
+            "'{\"transitions\": 1000000}', CURRENT_TIMESTAMP)"))
+    upgrade(url)
+    with engine.connect() as conn:
+        decoded = conn.execute(text("SELECT decoded_bytes FROM datasets")).scalar_one()
+    engine.dispose()
+    assert decoded == 1_000_000 * (2 * 11 + 3 + 2) * 4
