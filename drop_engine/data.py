@@ -129,7 +129,7 @@ class _Tally:
         return notes
 
     def report(self, obs_dim: int, act_dim: int, attrs: Mapping, warnings: list[str]) -> DatasetReport:
-        env, candidates = _env(attrs, obs_dim, act_dim)
+        env, candidates, note = _env(attrs, obs_dim, act_dim)
         return DatasetReport(
             transitions=self.transitions,
             episodes=self.ends + int(not self.last_ends),
@@ -142,18 +142,28 @@ class _Tally:
             timeouts=self.timeouts,
             env=env,
             env_candidates=candidates,
-            warnings=warnings,
+            warnings=warnings + note,
         )
 
 
-def _env(attrs: Mapping, obs_dim: int, act_dim: int) -> tuple[str | None, list[str]]:
-    """(the env the file records if known, else the one its dims match if exactly one; every env of its dims)."""
+def _env(attrs: Mapping, obs_dim: int, act_dim: int) -> tuple[str | None, list[str], list[str]]:
+    """(the env the dataset matches, every env of its dims, a warning). The env the file records is believed only if
+    its dims agree; otherwise a job would be refused for the recorded env, so the dims choose, as without a record."""
     candidates = envs_matching(obs_dim, act_dim)
     recorded = str(attrs.get("env_name") or attrs.get("env") or "")
     try:
-        return get_env(recorded).name if recorded else candidates[0] if len(candidates) == 1 else None, candidates
+        spec = get_env(recorded) if recorded else None
     except KeyError:
-        return (candidates[0] if len(candidates) == 1 else None), candidates
+        spec = None
+    if spec is not None and (spec.obs_dim, spec.act_dim) == (obs_dim, act_dim):
+        return spec.name, candidates, []
+    env = candidates[0] if len(candidates) == 1 else None
+    if spec is None:
+        return env, candidates, []
+    matched = f"matched by dims instead: {env}" if env else f"dims match: {', '.join(candidates) or 'no known env'}"
+    return env, candidates, [
+        f"env_name: the file says {recorded}, whose (obs, act) dims are ({spec.obs_dim}, {spec.act_dim}), but the data "
+        f"has ({obs_dim}, {act_dim}); {matched}"]
 
 
 @contextmanager

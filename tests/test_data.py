@@ -174,3 +174,22 @@ def test_scan_holds_one_block_not_the_dataset(tmp_path):
         tracemalloc.stop()
     assert report.transitions == 999_999 and report.episodes == 1  # no next_observations: the last row is dropped
     assert peak < 16 << 20, peak
+
+
+def test_recorded_env_that_contradicts_the_dims_is_a_warning(tmp_path):
+    """Hopper-v4 recorded on 17-dim observations: the dims choose the env (two match, so none is chosen)."""
+    rng = np.random.default_rng(0)
+    arrays = {"observations": rng.normal(size=(20, 17)).astype(np.float32),
+              "actions": rng.uniform(-1, 1, size=(20, 6)).astype(np.float32),
+              "rewards": np.zeros(20, np.float32), "terminals": np.zeros(20, bool), "timeouts": np.zeros(20, bool)}
+    path = tmp_path / "d.hdf5"
+    save_hdf5(path, arrays, {"env_name": "Hopper-v4"})
+    for report in (scan(path), describe(load_dataset(path))):
+        assert report.env is None and report.env_candidates == ["walker2d", "halfcheetah"]
+        assert ("env_name: the file says Hopper-v4, whose (obs, act) dims are (11, 3), but the data has (17, 6); "
+                "dims match: walker2d, halfcheetah") in report.warnings
+    arrays["observations"] = arrays["observations"][:, :11]
+    arrays["actions"] = arrays["actions"][:, :3]
+    save_hdf5(path, arrays, {"env_name": "Walker2d-v4"})
+    report = scan(path)
+    assert report.env == "hopper" and report.warnings[-1].endswith("matched by dims instead: hopper")

@@ -97,3 +97,23 @@ def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):
         assert peak == 1
         for r in responses:
             assert client.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
+
+
+def test_a_recorded_env_that_contradicts_the_dims_is_a_warning(settings, tmp_path):
+    """Walker2d's dims under a Hopper-v4 record: stored, with a warning, and matched by its dims (two envs fit, so
+    none is chosen and a job names its env)."""
+    path = _lazy(tmp_path / "walker.hdf5", 1000)
+    with h5py.File(path, "a") as f:
+        f.attrs["env_name"] = "Hopper-v4"
+        for key, width in (("observations", 17), ("actions", 6)):
+            del f[key]
+            f.create_dataset(key, shape=(1000, width), dtype="f4")
+    with private_api(settings) as (_, client):
+        r = client.post("/v1/datasets", content=path.read_bytes())
+        assert r.status_code == 201, r.text
+        ds = r.json()
+        assert ds["env"] is None and ds["report"]["env_candidates"] == ["walker2d", "halfcheetah"]
+        assert any(w.startswith("env_name: the file says Hopper-v4, whose (obs, act) dims are (11, 3), but the data "
+                                "has (17, 6)") for w in ds["report"]["warnings"]), ds["report"]["warnings"]
+        job = client.post("/v1/jobs", json={"dataset_id": ds["id"], "env": "walker2d", "preset": "smoke"})
+        assert job.status_code == 201, job.text
