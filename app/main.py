@@ -9,6 +9,7 @@ from typing import AsyncIterator
 from fastapi import FastAPI
 
 from . import problems
+from .body_timeout import IdleBody
 from .db import make_engine, make_reader, make_sessionmaker, schema_problem
 from .event_bus import EventWaker, listen
 from .job_metrics import JobMetrics
@@ -44,6 +45,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
                   lifespan=_lifespan)
     app.add_middleware(BodyLimit, limit=JSON_BODY_LIMIT, exempt={("POST", "/v1/datasets")})
+    app.add_middleware(IdleBody, timeout=settings.body_idle_timeout_s)  # outside BodyLimit, which reads JSON bodies
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)

@@ -46,6 +46,9 @@ class Settings(BaseSettings):
                                        "child; it reads a block of rows at a time, so this does not grow with datasets")
     max_concurrent_validations: int = Field(2, ge=1, description="validator children at once per API process; more "
                                             "wait their turn")
+    # Requests that hold a socket and a file while their body arrives (issue 15): per API process.
+    body_idle_timeout_s: float = Field(30.0, gt=0, description="a request body that sends nothing for this long is "
+                                       "answered 408 and its connection closed")
     cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")
     # Observability and API processes (issue 14)
     log_format: Literal["json", "console"] = Field("json", description="JSON lines, or readable ('console', the "

@@ -1,0 +1,111 @@
+"""Clients that hold a request open, against a real `drop api` process over raw sockets: a body that stops arriving
+is answered 408 and its connection closed after DROP_BODY_IDLE_TIMEOUT_S, and an upload's partial file is removed."""
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+import httpx
+import pytest
+
+from .conftest import REPO, free_port, settings_env, wait_ready
+
+IDLE_S = 1.0
+
+
+@contextmanager
+def api_process(settings, tmp_path: Path, **overrides) -> Iterator[tuple[int, Path, Path]]:
+    """(port, data dir, log) of a `drop api` on the session's database with these settings."""
+    s = settings.model_copy(update={"data_dir": tmp_path / "data", **overrides})
+    s.ensure_dirs()
+    port, log = free_port(), tmp_path / "api.log"
+    with log.open("ab") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1", "--port", str(port),
+                                 "--workers", "1"], cwd=REPO, env=settings_env(s), stdout=out, stderr=subprocess.STDOUT)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
+            wait_ready(http, proc, log)
+        yield port, s.data_dir, log
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.fixture(scope="module")
+def tokens(settings) -> dict[str, str]:
+    from app.auth import create_token
+    from app.db import make_engine, make_sessionmaker
+
+    engine = make_engine(settings.database_url)
+    try:
+        return {name: create_token(make_sessionmaker(engine), f"stall-{name}") for name in ("a",)}
+    finally:
+        engine.dispose()
+
+
+def _open(port: int, method: str, path: str, headers: dict[str, str], body: bytes) -> socket.socket:
+    """A request whose head and first body bytes are sent; the rest never is."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    head = "".join(f"{k}: {v}\r\n" for k, v in {"Host": "127.0.0.1", **headers}.items())
+    sock.sendall(f"{method} {path} HTTP/1.1\r\n{head}\r\n".encode() + body)
+    return sock
+
+
+def _until_closed(sock: socket.socket, timeout: float) -> bytes:
+    """What the server sends until it closes the connection (a timeout here fails the test)."""
+    sock.settimeout(timeout)
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    sock.close()
+    return data
+
+
+def _parts(data_dir: Path) -> list[Path]:
+    return list((data_dir / "uploads").glob("*.part"))
+
+
+def _wait_for_parts(data_dir: Path, count: int) -> None:
+    deadline = time.monotonic() + 10
+    while len(_parts(data_dir)) < count:
+        assert time.monotonic() < deadline, _parts(data_dir)
+        time.sleep(0.02)
+
+
+STALLS = {
+    "upload-short-of-its-length": ("/v1/datasets", {"Content-Length": "100000"}, b"\x89HDF\r\n\x1a\n" + bytes(992)),
+    "upload-chunked-never-ending": ("/v1/datasets", {"Transfer-Encoding": "chunked"}, b"400\r\n" + bytes(1024) + b"\r\n"),
+    "job-post-short-of-its-length": ("/v1/jobs", {"Content-Length": "200", "Content-Type": "application/json"},
+                                     b'{"dataset_id": '),
+}
+
+
+@pytest.fixture(scope="module")
+def stalling_api(settings, tmp_path_factory):
+    with api_process(settings, tmp_path_factory.mktemp("stall"), body_idle_timeout_s=IDLE_S) as api:
+        yield api
+
+
+@pytest.mark.parametrize("case", STALLS)
+def test_a_stalled_body_is_dropped_after_the_idle_timeout(stalling_api, tokens, case):
+    port, data_dir, _ = stalling_api
+    path, headers, body = STALLS[case]
+    began = time.monotonic()
+    sock = _open(port, "POST", path, {"Authorization": f"Bearer {tokens['a']}", **headers}, body)
+    if path == "/v1/datasets":
+        _wait_for_parts(data_dir, 1)  # the upload is being written
+    answer = _until_closed(sock, 10 * IDLE_S)
+    waited = time.monotonic() - began
+    assert answer.startswith(b"HTTP/1.1 408 "), answer
+    assert b'"code":"body_timeout"' in answer and b"DROP_BODY_IDLE_TIMEOUT_S" in answer
+    assert IDLE_S <= waited < 5 * IDLE_S, waited
+    assert not _parts(data_dir)
