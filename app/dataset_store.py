@@ -44,21 +44,23 @@ async def _validate(request: Request, upload: Upload, dataset_id: str, owner: st
 
 
 async def create(request: Request, owner: str, name: str | None, s: Session, settings: Settings) -> Dataset:
-    """Receive, validate and record an upload; nothing is left behind on any failure."""
-    dataset_id = new_id("ds")
-    part = upload_dir(settings) / f"{dataset_id}.part"
-    limit, too_large = await run_in_threadpool(quotas.upload_limit, s, owner, settings)
-    try:
-        upload = await receive(request, part, limit, name, too_large)
-        UPLOAD_BYTES.inc(upload.size)
+    """Receive, validate and record an upload, holding one of the owner's upload slots throughout (429 past them);
+    nothing is left behind on any failure."""
+    with request.app.state.upload_slots.hold(owner):
+        dataset_id = new_id("ds")
+        part = upload_dir(settings) / f"{dataset_id}.part"
+        limit, too_large = await run_in_threadpool(quotas.upload_limit, s, owner, settings)
         try:
-            row = await _validate(request, upload, dataset_id, owner)
-            await run_in_threadpool(_save, s, row, settings)  # a busy SQLite must not block the event loop
-        except BaseException:
-            remove_tree(dataset_dir(settings, dataset_id))
-            raise
-    finally:
-        part.unlink(missing_ok=True)
+            upload = await receive(request, part, limit, name, too_large)
+            UPLOAD_BYTES.inc(upload.size)
+            try:
+                row = await _validate(request, upload, dataset_id, owner)
+                await run_in_threadpool(_save, s, row, settings)  # a busy SQLite must not block the event loop
+            except BaseException:
+                remove_tree(dataset_dir(settings, dataset_id))
+                raise
+        finally:
+            part.unlink(missing_ok=True)
     return row
 
 

@@ -19,7 +19,7 @@ from .observe import ObserveRequests
 from .procs import supervised
 from .routers import datasets, health, jobs, metrics, outputs
 from .settings import Settings, get_settings
-from .stream_slots import StreamSlots
+from .slots import stream_slots, upload_slots
 from .token_cache import TokenCache
 from .validate import Validator
 
@@ -51,7 +51,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessions = make_sessionmaker(engine)
     app.state.reader = make_reader(engine)
     app.state.events = EventWaker()
-    app.state.stream_slots = StreamSlots(settings.max_streams_per_owner)
+    app.state.stream_slots = stream_slots(settings)
+    app.state.upload_slots = upload_slots(settings)
     app.state.validator = Validator(settings)
     app.state.job_metrics = JobMetrics(engine)
     app.state.tokens = TokenCache(settings.token_cache_s)

@@ -49,6 +49,10 @@ class Settings(BaseSettings):
     # Requests that hold a socket and a file while their body arrives (issue 15): per API process.
     body_idle_timeout_s: float = Field(30.0, gt=0, description="a request body that sends nothing for this long is "
                                        "answered 408 and its connection closed")
+    max_concurrent_uploads: int = Field(16, ge=1, description="uploads in progress (receiving or validating) per API "
+                                        "process; more get 429")
+    max_uploads_per_owner: int = Field(4, ge=1, description="uploads in progress per owner per API process; more get "
+                                       "429")
     cancel_poll_s: float = Field(0.5, ge=0, description="how often a running job checks for cancellation")
     # Observability and API processes (issue 14)
     log_format: Literal["json", "console"] = Field("json", description="JSON lines, or readable ('console', the "

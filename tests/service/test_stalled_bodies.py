@@ -1,5 +1,6 @@
 """Clients that hold a request open, against a real `drop api` process over raw sockets: a body that stops arriving
-is answered 408 and its connection closed after DROP_BODY_IDLE_TIMEOUT_S, and an upload's partial file is removed."""
+is answered 408 and its connection closed after DROP_BODY_IDLE_TIMEOUT_S, and an upload's partial file is removed;
+uploads in progress are bounded per owner and in all (429)."""
 from __future__ import annotations
 
 import socket
@@ -14,6 +15,7 @@ import httpx
 import pytest
 
 from .conftest import REPO, free_port, settings_env, wait_ready
+from .private_api import tiny_npz
 
 IDLE_S = 1.0
 
@@ -47,7 +49,7 @@ def tokens(settings) -> dict[str, str]:
 
     engine = make_engine(settings.database_url)
     try:
-        return {name: create_token(make_sessionmaker(engine), f"stall-{name}") for name in ("a",)}
+        return {name: create_token(make_sessionmaker(engine), f"stall-{name}") for name in ("a", "b")}
     finally:
         engine.dispose()
 
@@ -109,3 +111,33 @@ def test_a_stalled_body_is_dropped_after_the_idle_timeout(stalling_api, tokens, 
     assert b'"code":"body_timeout"' in answer and b"DROP_BODY_IDLE_TIMEOUT_S" in answer
     assert IDLE_S <= waited < 5 * IDLE_S, waited
     assert not _parts(data_dir)
+
+
+def test_uploads_in_progress_are_bounded_per_owner_and_in_all(settings, tmp_path, tokens):
+    """Per owner 2, in all 3: owner a holds two stalled uploads and b one; a third of a's passes its own bound, a
+    second of b's the server's; closing the stalled ones frees their slots and their files."""
+    with api_process(settings, tmp_path, max_uploads_per_owner=2, max_concurrent_uploads=3) as (port, data_dir, _):
+        def stall(owner: str) -> socket.socket:
+            return _open(port, "POST", "/v1/datasets", {"Authorization": f"Bearer {tokens[owner]}",
+                                                         "Content-Length": "100000"}, b"\x89HDF")
+
+        held = [stall("a"), stall("a"), stall("b")]
+        _wait_for_parts(data_dir, 3)
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as http:
+            def upload(owner: str) -> httpx.Response:
+                return http.post("/v1/datasets", content=tiny_npz(0), headers={"Authorization": f"Bearer {tokens[owner]}"})
+
+            for owner, setting in (("a", "DROP_MAX_UPLOADS_PER_OWNER"), ("b", "DROP_MAX_CONCURRENT_UPLOADS")):
+                r = upload(owner)
+                assert r.status_code == 429 and r.json()["code"] == "too_many_uploads", r.text
+                assert setting in r.json()["detail"] and r.headers["retry-after"].isdigit()
+            for sock in held:
+                sock.close()
+            deadline = time.monotonic() + 10
+            while _parts(data_dir):  # each disconnected upload removes its file and gives its slot back
+                assert time.monotonic() < deadline, _parts(data_dir)
+                time.sleep(0.05)
+            r = upload("b")
+            assert r.status_code == 201, r.text
+            assert http.delete(f"/v1/datasets/{r.json()['id']}",
+                               headers={"Authorization": f"Bearer {tokens['b']}"}).status_code == 204
