@@ -7,12 +7,41 @@ every line logged in that context.
 from __future__ import annotations
 
 import logging
-from typing import Literal
+import threading
+import time
+from typing import Callable, Literal
 
 import structlog
 
 LogFormat = Literal["json", "console"]
 bound = structlog.contextvars.bound_contextvars
+# asyncio's line, with a traceback, for each connection it cannot accept; out of file descriptors, thousands a second.
+ACCEPT_ERROR = "socket.accept() out of system resource"
+ACCEPT_ERROR_EVERY_S = 10.0
+
+
+class OncePer(logging.Filter):
+    """Let through one record whose message starts with `prefix` per `every_s`; the next one let through says how
+    many were dropped in between."""
+
+    def __init__(self, prefix: str, every_s: float, clock: Callable[[], float] = time.monotonic):
+        super().__init__()
+        self.prefix, self.every_s, self.clock = prefix, every_s, clock
+        self._next, self._dropped = float("-inf"), 0
+        self._lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.getMessage().startswith(self.prefix):
+            return True
+        now = self.clock()
+        with self._lock:
+            if now < self._next:
+                self._dropped += 1
+                return False
+            self._next, dropped, self._dropped = now + self.every_s, self._dropped, 0
+        if dropped:
+            record.msg, record.args = f"{record.getMessage()}\n({dropped} more dropped since the last)", ()
+        return True
 
 
 def configure(fmt: LogFormat = "json", level: str = "INFO") -> None:
@@ -29,6 +58,7 @@ def configure(fmt: LogFormat = "json", level: str = "INFO") -> None:
     else:
         render = [structlog.dev.ConsoleRenderer(colors=False)]
     handler = logging.StreamHandler()
+    handler.addFilter(OncePer(ACCEPT_ERROR, ACCEPT_ERROR_EVERY_S))
     handler.setFormatter(structlog.stdlib.ProcessorFormatter(
         foreign_pre_chain=shared, processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, *render]))
     root = logging.getLogger()

@@ -1,8 +1,10 @@
 """Clients that hold a request open, against a real `drop api` process over raw sockets: a body that stops arriving
 is answered 408 and its connection closed after DROP_BODY_IDLE_TIMEOUT_S, and an upload's partial file is removed;
-uploads in progress are bounded per owner and in all (429)."""
+uploads in progress are bounded per owner and in all (429); running out of file descriptors logs one line per
+interval, not one per refused connection."""
 from __future__ import annotations
 
+import resource
 import socket
 import subprocess
 import sys
@@ -14,6 +16,8 @@ from typing import Iterator
 import httpx
 import pytest
 
+from app.logs import ACCEPT_ERROR
+
 from .conftest import REPO, free_port, settings_env, wait_ready
 from .private_api import tiny_npz
 
@@ -21,14 +25,17 @@ IDLE_S = 1.0
 
 
 @contextmanager
-def api_process(settings, tmp_path: Path, **overrides) -> Iterator[tuple[int, Path, Path]]:
-    """(port, data dir, log) of a `drop api` on the session's database with these settings."""
+def api_process(settings, tmp_path: Path, nofile: int | None = None, **overrides) -> Iterator[tuple[int, Path, Path]]:
+    """(port, data dir, log) of a `drop api` on the session's database with these settings; `nofile` caps its file
+    descriptors."""
     s = settings.model_copy(update={"data_dir": tmp_path / "data", **overrides})
     s.ensure_dirs()
     port, log = free_port(), tmp_path / "api.log"
+    limit = (lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))) if nofile else None
     with log.open("ab") as out:
         proc = subprocess.Popen([sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1", "--port", str(port),
-                                 "--workers", "1"], cwd=REPO, env=settings_env(s), stdout=out, stderr=subprocess.STDOUT)
+                                 "--workers", "1"], cwd=REPO, env=settings_env(s), stdout=out, stderr=subprocess.STDOUT,
+                                preexec_fn=limit)
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}") as http:
             wait_ready(http, proc, log)
@@ -141,3 +148,47 @@ def test_uploads_in_progress_are_bounded_per_owner_and_in_all(settings, tmp_path
             assert r.status_code == 201, r.text
             assert http.delete(f"/v1/datasets/{r.json()['id']}",
                                headers={"Authorization": f"Bearer {tokens['b']}"}).status_code == 204
+
+
+def test_running_out_of_file_descriptors_logs_one_line_per_interval(settings, tmp_path):
+    """More idle connections than the process has descriptors: asyncio cannot accept the rest and says so, once per
+    DROP's interval rather than thousands of times a second; once they are gone, the API answers again."""
+    with api_process(settings, tmp_path, nofile=160) as (port, _, log):
+        sockets = []
+        try:
+            for _ in range(300):
+                sockets.append(socket.create_connection(("127.0.0.1", port), timeout=5))
+            time.sleep(3)  # asyncio retries the accept every second meanwhile
+            assert 1 <= log.read_text(errors="replace").count(ACCEPT_ERROR) <= 2
+        finally:
+            for sock in sockets:
+                sock.close()
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as http:
+            deadline = time.monotonic() + 20
+            while True:
+                try:
+                    if http.get("/healthz").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                assert time.monotonic() < deadline
+                time.sleep(0.2)
+
+
+def test_the_line_let_through_says_how_many_were_dropped():
+    import logging
+
+    from app.logs import OncePer
+
+    now = [0.0]
+    limit = OncePer(ACCEPT_ERROR, 10.0, clock=lambda: now[0])
+
+    def record(message: str) -> logging.LogRecord:
+        return logging.LogRecord("asyncio", logging.ERROR, __file__, 0, message, (), None)
+
+    assert limit.filter(record(ACCEPT_ERROR))
+    assert not any(limit.filter(record(ACCEPT_ERROR)) for _ in range(999))
+    assert limit.filter(record("something else"))
+    now[0] = 10.0
+    line = record(ACCEPT_ERROR)
+    assert limit.filter(line) and line.getMessage().endswith("(999 more dropped since the last)")
