@@ -1,5 +1,5 @@
 """The service behind /v1/datasets: an upload streamed, validated and recorded within the owner's limits, and a
-delete."""
+delete that cannot pass a job being created on the same dataset."""
 from __future__ import annotations
 
 from fastapi import Request
@@ -14,6 +14,7 @@ from .deps import owned_dataset
 from .ids import new_id
 from .metrics import UPLOAD_BYTES, VALIDATION_SECONDS
 from .models import ACTIVE_STATUSES, Dataset, Job
+from .owner_lock import lock_owner
 from .problems import Problem
 from .settings import Settings
 from .storage import dataset_dir, remove_tree, upload_dir
@@ -65,8 +66,11 @@ async def create(request: Request, owner: str, name: str | None, s: Session, set
 
 
 def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
-    """Delete the dataset, or 409 while a job uses it."""
-    row = owned_dataset(s, owner, dataset_id, lock=True)  # serialises with job creation on this dataset
+    """Delete the dataset, or 409 while a job uses it. The owner's lock, taken before anything is read, orders this
+    against a job's creation on any backend: either the job exists first and this answers 409, or the dataset is gone
+    first and the job's creation answers 404."""
+    lock_owner(s, owner)
+    row = owned_dataset(s, owner, dataset_id)
     busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")

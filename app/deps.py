@@ -23,10 +23,10 @@ def session(request: Request) -> Iterator[Session]:
         yield s
 
 
-def owned_dataset(s: Session, owner_id: str, dataset_id: str, lock: bool = False) -> Dataset:
-    """The owner's dataset or 404; `lock` takes a row lock (PostgreSQL) so a delete and a new job cannot interleave."""
+def owned_dataset(s: Session, owner_id: str, dataset_id: str) -> Dataset:
+    """The owner's dataset or 404."""
     q = select(Dataset).where(Dataset.id == dataset_id, Dataset.owner_id == owner_id)
-    row = s.scalar(q.with_for_update() if lock else q) if is_id(dataset_id, "ds") else None
+    row = s.scalar(q) if is_id(dataset_id, "ds") else None
     if row is None:
         raise Problem(404, "not_found", f"dataset {dataset_id} not found")
     return row

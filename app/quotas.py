@@ -1,26 +1,22 @@
 """Per-owner quotas: unfinished jobs (429) and stored dataset bytes (413).
 
-Each check counts under a lock on the owner's row, taken by a no-op UPDATE: PostgreSQL holds that row lock and SQLite
-its database write lock until the transaction ends, so two requests of one owner at once cannot both count the same
-total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock. A dataset counts
-at the larger of its file size and its decoded size (`Dataset.charged_bytes`).
+Each check counts under the owner's lock (app/owner_lock.py), so two requests of one owner at once cannot both count
+the same total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock. A
+dataset counts at the larger of its file size and its decoded size (`Dataset.charged_bytes`).
 """
 from __future__ import annotations
 
 from typing import Callable
 
-from sqlalchemy import func, select, update
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from .models import ACTIVE_STATUSES, Dataset, Job, Owner
+from .models import ACTIVE_STATUSES, Dataset, Job
+from .owner_lock import lock_owner
 from .problems import Problem
 from .settings import Settings
 
 RETRY_AFTER_S = 60  # jobs take minutes; asking again sooner is pointless
-
-
-def _lock_owner(s: Session, owner_id: str) -> None:
-    s.execute(update(Owner).where(Owner.id == owner_id).values(name=Owner.name))
 
 
 def _refuse(s: Session, problem: Problem) -> Problem:
@@ -30,7 +26,7 @@ def _refuse(s: Session, problem: Problem) -> Problem:
 
 def check_active_jobs(s: Session, owner_id: str, settings: Settings) -> None:
     """Raise 429 if the owner already has the most unfinished jobs allowed; the lock lasts until the caller commits."""
-    _lock_owner(s, owner_id)
+    lock_owner(s, owner_id)
     active = s.scalar(select(func.count()).select_from(Job)
                       .where(Job.owner_id == owner_id, Job.status.in_(ACTIVE_STATUSES)))
     limit = settings.max_active_jobs_per_owner
@@ -67,7 +63,7 @@ def upload_limit(s: Session, owner_id: str, settings: Settings) -> tuple[int, Ca
 def check_storage(s: Session, owner_id: str, settings: Settings, row: Dataset) -> None:
     """Raise 413 if the new dataset `row` takes the owner past the quota (recounted under the owner lock, as uploads
     of one owner may run side by side); the lock lasts until the caller commits."""
-    _lock_owner(s, owner_id)
+    lock_owner(s, owner_id)
     stored, quota = stored_bytes(s, owner_id), settings.max_stored_bytes_per_owner
     if stored + row.charged_bytes > quota:
         detail = (f"this {row.size_bytes}-byte dataset does not fit" if row.charged_bytes == row.size_bytes else

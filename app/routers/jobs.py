@@ -17,6 +17,7 @@ from ..deps import DB, Config, Owner, JobCursor, owned_dataset, owned_job
 from ..ids import new_id
 from ..jobcreate import JobRequest, build
 from ..models import JOB_STATUSES, Job, JobEvent, utcnow
+from ..owner_lock import lock_owner
 from ..problems import Problem
 from ..schemas import JobOut, Page
 from ..settings import Settings
@@ -49,7 +50,8 @@ def create_job(req: JobRequest, request: Request, response: Response,
         if existing is not None:
             response.status_code = 200
             return serialize.job(existing)
-    dataset = owned_dataset(s, owner, req.dataset_id, lock=True)
+    lock_owner(s, owner)  # before the dataset is read: a delete of it either finished first (404) or waits (409)
+    dataset = owned_dataset(s, owner, req.dataset_id)
     env, config = build(req, dataset, settings)
     quotas.check_active_jobs(s, owner, settings)
     job = Job(id=new_id("job"), owner_id=owner, dataset_id=dataset.id, algorithm=config["algorithm"], env=env,
