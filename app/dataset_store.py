@@ -1,0 +1,79 @@
+"""The service behind /v1/datasets: an upload streamed, validated and recorded within the owner's limits, and a
+delete that cannot pass a job being created on the same dataset."""
+from __future__ import annotations
+
+from fastapi import Request
+from fastapi.concurrency import run_in_threadpool
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from drop_engine.data_rows import DataShape
+
+from . import quotas
+from .deps import owned_dataset
+from .ids import new_id
+from .metrics import UPLOAD_BYTES, VALIDATION_SECONDS
+from .models import ACTIVE_STATUSES, Dataset, Job
+from .owner_lock import lock_owner
+from .problems import Problem
+from .settings import Settings
+from .storage import dataset_dir, remove_tree, upload_dir
+from .upload import Upload, receive
+from .validate import Invalid
+
+
+def _save(s: Session, row: Dataset, settings: Settings) -> None:
+    quotas.check_storage(s, row.owner_id, settings, row)
+    s.add(row)
+    s.commit()
+
+
+async def _validate(request: Request, upload: Upload, dataset_id: str, owner: str) -> Dataset:
+    """The dataset row of a received upload, once the validator has accepted it (and written its file)."""
+    target = dataset_dir(request.app.state.settings, dataset_id)
+    target.mkdir(parents=True)
+    try:
+        result = await request.app.state.validator.validate(upload.path, target, VALIDATION_SECONDS.time())
+    except Invalid as exc:
+        raise Problem(422, "invalid_dataset", str(exc)) from None
+    report = result["report"]
+    return Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
+                   sha256=upload.sha256, size_bytes=upload.size,
+                   decoded_bytes=DataShape(report["transitions"], report["obs_dim"], report["act_dim"]).decoded_bytes,
+                   path=str((target / result["file"]).resolve()), env=report.get("env"), obs_dim=report["obs_dim"],
+                   act_dim=report["act_dim"], report=report)
+
+
+async def create(request: Request, owner: str, name: str | None, s: Session, settings: Settings) -> Dataset:
+    """Receive, validate and record an upload, holding one of the owner's upload slots throughout (429 past them);
+    nothing is left behind on any failure."""
+    with request.app.state.upload_slots.hold(owner):
+        dataset_id = new_id("ds")
+        part = upload_dir(settings) / f"{dataset_id}.part"
+        limit, too_large = await run_in_threadpool(quotas.upload_limit, s, owner, settings)
+        try:
+            upload = await receive(request, part, limit, name, too_large)
+            UPLOAD_BYTES.inc(upload.size)
+            try:
+                row = await _validate(request, upload, dataset_id, owner)
+                await run_in_threadpool(_save, s, row, settings)  # a busy SQLite must not block the event loop
+            except BaseException:
+                remove_tree(dataset_dir(settings, dataset_id))
+                raise
+        finally:
+            part.unlink(missing_ok=True)
+    return row
+
+
+def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
+    """Delete the dataset, or 409 while a job uses it. The owner's lock, taken before anything is read, orders this
+    against a job's creation on any backend: either the job exists first and this answers 409, or the dataset is gone
+    first and the job's creation answers 404."""
+    lock_owner(s, owner)
+    row = owned_dataset(s, owner, dataset_id)
+    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
+    if busy:
+        raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
+    s.delete(row)
+    s.commit()
+    remove_tree(dataset_dir(settings, dataset_id))
