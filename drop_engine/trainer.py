@@ -30,6 +30,7 @@ from .config import TrainConfig
 from .data import Dataset, Normalizer, load_dataset
 from .diagnostics import exploitation_stats
 from .dice import GradientDice
+from .divergence import check_finite
 from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from .envs import get_env
 from .evaluate import evaluate
@@ -273,7 +274,8 @@ class Trainer:
         self.metric_count += 1
 
     def _report(self, metrics: dict[str, float], step: int) -> None:
-        """Every metric goes to the callback through here."""
+        """Every metric goes to the callback through here, once checked to be finite (`divergence.py`)."""
+        check_finite(metrics, step)
         self.cb.on_metrics(metrics, step)
 
     def _flush_metrics(self) -> None:
