@@ -213,14 +213,18 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         _add_onnx(sessions, job_id, result, dataset.obs_dim)
         finish(sessions, job_id, attempt, "succeeded", "succeeded", result=result.to_dict())
         return "succeeded"
+    # A run stopped while fitting its dynamics model has written no checkpoint yet: say so, not that it wrote one.
+    checkpointed = result.checkpoint is not None
     if callback.stop_reason == "cancelled":
-        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written",
+        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written"
+               if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
                result=result.to_dict())
         return "cancelled"
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
         # next worker to start (or of any live one) sends it, because enqueued_at is cleared.
-        if requeue(sessions, job_id, attempt, "re-queued: its worker is shutting down; will resume from checkpoint"):
+        then = "will resume from checkpoint" if checkpointed else "will start over (stopped before its first checkpoint)"
+        if requeue(sessions, job_id, attempt, f"re-queued: its worker is shutting down; {then}"):
             return "requeued"
         if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
                   result=result.to_dict()):
