@@ -26,6 +26,7 @@ from app.storage import job_dir, model_cache_dir
 from app.storage_errors import storage_failure
 
 from .callback import DbCallback
+from .failures import unexpected_failure
 
 log = logging.getLogger("drop.worker")
 
@@ -184,6 +185,7 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
 
     from drop_engine.config import TrainConfig
     from drop_engine.data import DatasetError
+    from drop_engine.divergence import TrainingDiverged
     from drop_engine.trainer import train
 
     job_id = job.id
@@ -195,6 +197,9 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     except DatasetError as exc:
         _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
         return "failed"
+    except TrainingDiverged as exc:
+        _fail(sessions, job_id, attempt, "training_diverged", str(exc), traceback.format_exc())
+        return "failed"
     except Exception as exc:
         # The soft limit is raised from a signal handler wherever the job happens to be, and a library may wrap
         # it in its own error type (psycopg, interrupted mid-query): past the deadline, any failure is the timeout.
@@ -205,8 +210,7 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
             return "failed"
         log.exception("job %s failed", job_id)
         # A full or read-only disk fails the job rather than retrying it: another attempt would meet the same disk.
-        code, message = (storage_failure(exc, "the run's checkpoint or policy")
-                         or ("training_error", f"{type(exc).__name__}: {exc}"))
+        code, message = storage_failure(exc, "the run's checkpoint or policy") or unexpected_failure(exc)
         _fail(sessions, job_id, attempt, code, message, traceback.format_exc())
         return "failed"
     if result.status == "completed":
