@@ -364,17 +364,18 @@ class Trainer:
 
     def _end_epoch(self) -> bool:
         """After the epoch's SAC steps: report them, evaluate if due, move on to the next epoch. False if stopped in
-        the evaluation: the position stays at the end of the SAC steps, from where a resumed run evaluates."""
+        the evaluation: the position stays at the end of the SAC steps, from where a resumed run evaluates, and the
+        progress reported says so."""
         cfg = self.cfg
         self._flush_metrics()
         epoch = self.epoch + 1
-        self.cb.on_progress("train", epoch, self.global_step, cfg.epochs * cfg.steps_per_epoch)
         if epoch % cfg.eval_every == 0 or epoch == cfg.epochs:
             try:
                 self.evaluate_now(epoch)
             except Stopped:
                 return False
         self.epoch, self.step_in_epoch, self.epoch_started = epoch, 0, False
+        self.cb.on_progress("train", epoch, self.global_step, cfg.epochs * cfg.steps_per_epoch)
         return True
 
     def _epoch(self) -> bool:

@@ -31,7 +31,7 @@ class Recorder(Callback):
     asks to stop from the ask after the first `after` of those made inside that function on."""
 
     def __init__(self, stop_in=None, after: int = 0):
-        self.metrics, self.evaluations, self.checkpoints, self.phases = [], [], [], set()
+        self.metrics, self.evaluations, self.checkpoints, self.phases, self.progress = [], [], [], set(), None
         self.asks, self.stop_in, self.after, self.stopping, self.starts = Counter(), stop_in, after, False, []
 
     def asked_in(self, fn) -> int:
@@ -42,6 +42,7 @@ class Recorder(Callback):
 
     def on_progress(self, phase, epoch, step, total):
         self.phases.add(phase)
+        self.progress = (epoch, step)
 
     def on_metrics(self, metrics, step):
         self.metrics.append((step, dict(metrics)))
@@ -167,6 +168,7 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset, uninterr
         assert (b1.epoch_started, b1.step_in_epoch) == {
             "dice": (False, 0), "rollout": (False, 0), "evaluate": (True, cfg.steps_per_epoch)}[phase]
     assert b1.evaluations == a.evaluations[: len(b1.evaluations)]
+    assert first.progress[0] == b1.epoch, "the progress reported last is no further than where the run stopped"
     # The position and the best actor so far are in the checkpoint, so a resumed run can still export that actor.
     probe = Trainer(hopper_dataset, cfg, tmp_path / "probe")
     probe.load_state_dict(load_latest(tmp_path / "b" / "checkpoints"))
