@@ -4,8 +4,6 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -13,7 +11,7 @@ from typing import Iterator
 
 from drop_engine.cli import build_parser as engine_parser
 
-from .procs import SUPERVISOR_ENV
+from .procs import SUPERVISOR_ENV, serve_worker
 
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
 GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
@@ -141,15 +139,19 @@ def _supervising(workers: int) -> Iterator[None]:
         os.environ.pop(SUPERVISOR_ENV, None)
 
 
+def _uvicorn_options(host: str, port: int, workers: int) -> dict:
+    """Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours."""
+    return {"app": "app.main:served_app", "factory": True, "host": host, "port": port, "workers": workers,
+            "log_config": None, "access_log": False, "timeout_graceful_shutdown": GRACEFUL_S}
+
+
 def _run_api(settings, host: str, port: int, workers: int) -> int:
     import uvicorn
 
     if not _check_migrated(settings):
         return 2
     with _metrics_dir(workers), _supervising(workers):
-        # Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours.
-        uvicorn.run("app.main:served_app", factory=True, host=host, port=port, workers=workers, log_config=None,
-                    access_log=False, timeout_graceful_shutdown=GRACEFUL_S)
+        uvicorn.run(**_uvicorn_options(host, port, workers))
     return 0
 
 
@@ -166,6 +168,7 @@ def cmd_api(args: argparse.Namespace) -> int:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
+    serve_worker()  # before anything else: `drop serve` may die at any time
     settings = _settings()
     _configure_logs(settings, args.loglevel)
     settings.ensure_dirs()
@@ -181,7 +184,8 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    """Embedded single-machine mode: migrate, start one worker process, then serve the API in this one."""
+    """Embedded single-machine mode: migrate, then serve the API in this process and one worker in a child, stopped
+    together by SIGTERM, SIGINT or SIGHUP (app/embedded.py)."""
     if not args.auth:
         os.environ["DROP_AUTH_DISABLED"] = "true"
     os.environ.setdefault("DROP_LOG_FORMAT", "console")  # a person reads it; DROP_LOG_FORMAT=json for a collector
@@ -191,16 +195,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings()
     print(f"drop serve: data in {settings.data_dir.resolve()}, auth {'off' if settings.auth_disabled else 'on'}, "
           f"API on http://{args.host}:{args.port}", flush=True)
-    worker = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--loglevel", "WARNING"], env=os.environ.copy())
-    try:
-        _configure_logs(settings)
-        return _run_api(settings, args.host, args.port, 1)
-    finally:
-        worker.send_signal(signal.SIGTERM)
-        try:
-            worker.wait(30)
-        except subprocess.TimeoutExpired:
-            worker.kill()
+    import uvicorn
+
+    from .embedded import serve
+
+    _configure_logs(settings)
+    return serve(uvicorn.Config(**_uvicorn_options(args.host, args.port, 1)))
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -28,7 +28,9 @@ class Callback:
         """A checkpoint was written atomically at `path`."""
 
     def should_stop(self) -> bool:
-        """Asked between steps; True stops the run at that boundary with a final checkpoint."""
+        """Asked inside every phase, between batches, steps, row chunks or env steps, so it must be cheap. True stops
+        the run within one of those: with a final checkpoint of the boundary before (a step, the epoch's start or the
+        end of its SAC steps), or, in the dynamics phase, with none, as there is nothing to resume yet."""
         return False
 
 

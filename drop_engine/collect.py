@@ -20,6 +20,7 @@ import torch
 from .data import from_arrays, save_hdf5
 from .envs import get_env, make_env
 from .online import OnlineConfig, OnlineSAC, actor_fn
+from .stopping import Stopped, check
 
 BehaviourPolicy = Callable[[np.ndarray], np.ndarray]
 KINDS = ("random", "medium", "medium-replay", "expert", "medium-expert")
@@ -175,10 +176,6 @@ def _record(cfg: CollectConfig, agent: OnlineSAC, kind: str, bar_factory) -> tup
     return arrays, [snap]
 
 
-class Stopped(Exception):
-    """Raised inside recording when the caller asked to stop; files already written stay."""
-
-
 class _Bar:
     """tqdm bar (or nothing) that accepts absolute progress."""
 
@@ -190,8 +187,8 @@ class _Bar:
             self.bar = tqdm(total=total, desc=desc, unit="step", dynamic_ncols=True)
 
     def update_to(self, n: int) -> None:
-        if self.should_stop is not None and self.should_stop():
-            raise Stopped
+        if self.should_stop is not None:
+            check(self.should_stop)  # raises Stopped inside recording; files already written stay
         if self.bar is not None:
             self.bar.n = n
             self.bar.refresh()

@@ -13,6 +13,7 @@ from torch import nn
 from .config import DynamicsConfig
 from .data import Dataset, Normalizer, split_sizes
 from .nn import EnsembleLinear, adam
+from .stopping import StopFlag, check, never
 
 
 class Swish(nn.Module):
@@ -102,7 +103,7 @@ class DynamicsReport:
     holdout_mse: list[float]
     elites: list[int]
     seconds: float
-    stopped_by: str
+    stopped_by: str  # "patience", "max_epochs" or "max_seconds"
 
 
 def _targets(data: Dataset) -> np.ndarray:
@@ -115,9 +116,12 @@ def train_dynamics(
     cfg: DynamicsConfig,
     rng: np.random.Generator,
     device: torch.device,
-    on_epoch: Callable[[int, float], bool] | None = None,
+    on_epoch: Callable[[int, float], None] | None = None,
+    should_stop: StopFlag = never,
 ) -> DynamicsReport:
-    """Fit the ensemble with holdout early stopping; `on_epoch(epoch, holdout)` returning True stops early."""
+    """Fit the ensemble with holdout early stopping; `on_epoch(epoch, holdout)` hears of each epoch. `should_stop` is
+    asked before every batch (an epoch over a large dataset takes minutes) and raises `Stopped`, leaving the model
+    half-trained: the caller discards it."""
     start = time.perf_counter()
     n = len(data)
     perm = rng.permutation(n)
@@ -142,6 +146,7 @@ def train_dynamics(
         order = torch.as_tensor(np.argsort(rng.random((B, n_train)), axis=1), device=device)
         shuffled = torch.gather(boot, 1, order)
         for lo in range(0, n_train, cfg.batch_size):
+            check(should_stop)
             idx = shuffled[:, lo : lo + cfg.batch_size]
             loss = model.loss(obs[idx], act[idx], target[idx])
             optim.zero_grad(set_to_none=True)
@@ -159,9 +164,8 @@ def train_dynamics(
             epochs_since = 0
         else:
             epochs_since += 1
-        if on_epoch is not None and on_epoch(epoch, float(hold.mean())):
-            stopped_by = "cancelled"
-            break
+        if on_epoch is not None:
+            on_epoch(epoch, float(hold.mean()))
         if epochs_since >= cfg.patience:
             break
         if cfg.max_epochs is not None and epoch >= cfg.max_epochs:

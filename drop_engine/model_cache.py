@@ -22,6 +22,7 @@ from .atomic import save_durably
 from .config import DynamicsConfig
 from .data import Dataset
 from .dynamics import DynamicsReport, GaussianEnsemble
+from .stopping import StopFlag, check
 
 FORMAT = 1  # bump when the artifact or the way an ensemble is built or trained changes: old files become misses
 LOCK_POLL_S = 0.5
@@ -44,8 +45,8 @@ class ModelCache:
         return self.directory / f"{key}.pt"
 
     @contextmanager
-    def _locked(self, key: str, should_stop: Callable[[], bool]) -> Iterator[bool]:
-        """Hold the key's lock; yields False, without it, if `should_stop` turns true while another process has it.
+    def _locked(self, key: str, should_stop: StopFlag) -> Iterator[None]:
+        """Hold the key's lock; raises `Stopped`, without it, if `should_stop` turns true while another process has it.
 
         Polled rather than blocking so a run waiting for another one's training can still be cancelled. Lock files
         are never removed: removing one would let two processes hold "the" lock on different files. `fcntl` is imported
@@ -59,12 +60,10 @@ class ModelCache:
                     fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
                     break
                 except BlockingIOError:
-                    if should_stop():
-                        yield False
-                        return
+                    check(should_stop)
                     time.sleep(LOCK_POLL_S)
             try:
-                yield True
+                yield
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
@@ -89,18 +88,15 @@ class ModelCache:
         return report
 
     def fetch_or_train(self, key: str, model: GaussianEnsemble, fit: Callable[[], DynamicsReport],
-                       should_stop: Callable[[], bool]) -> tuple[DynamicsReport, bool] | None:
-        """(report, from_cache): the stored model, or `fit()` trains `model` and it is stored unless it was
-        cancelled. None if stopped while another process held the key."""
-        with self._locked(key, should_stop) as locked:
-            if not locked:
-                return None
+                       should_stop: StopFlag) -> tuple[DynamicsReport, bool]:
+        """(report, from_cache): the stored model, or `fit()` trains `model` and it is stored. `Stopped`, from the
+        wait for another process's lock or from `fit`, goes through and stores nothing."""
+        with self._locked(key, should_stop):
             report = self.load(key, model)
             if report is not None:
                 return report, True
             report = fit()
-            if report.stopped_by != "cancelled":
-                self._store(key, model, report)
+            self._store(key, model, report)
             return report, False
 
     def _store(self, key: str, model: GaussianEnsemble, report: DynamicsReport) -> None:

@@ -7,6 +7,8 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from .stopping import StopFlag, check, never
+
 
 class EnsembleLinear(nn.Module):
     """M linear maps held as a (M, in, out) weight; input (M, N, in) or a shared (N, in)."""
@@ -90,14 +92,18 @@ def adam(params, lr: float) -> torch.optim.Adam:
 CACHE_ROWS = 512
 
 
-def in_row_chunks(fn, *inputs: torch.Tensor, in_dim: int = 0, out_dim: int = 0, rows: int = CACHE_ROWS):
+def in_row_chunks(fn, *inputs: torch.Tensor, in_dim: int = 0, out_dim: int = 0, rows: int = CACHE_ROWS,
+                  should_stop: StopFlag = never):
     """`fn` over slices of `rows` rows, outputs joined: a 50,000-row batch spills every layer's activations out of a
     CPU's cache, while 512 rows (x 5 members x 200 units) fit in L2; measured 3x faster for the dynamics ensemble.
-    On a GPU the whole batch goes at once."""
+    On a GPU the whole batch goes at once. `should_stop` is asked before each slice (a million rows take seconds)."""
     n = inputs[0].shape[in_dim]
     if inputs[0].device.type != "cpu" or n <= rows:
         return fn(*inputs)
-    parts = [fn(*(x.narrow(in_dim, lo, min(rows, n - lo)) for x in inputs)) for lo in range(0, n, rows)]
+    parts = []
+    for lo in range(0, n, rows):
+        check(should_stop)
+        parts.append(fn(*(x.narrow(in_dim, lo, min(rows, n - lo)) for x in inputs)))
     if isinstance(parts[0], tuple):
         return tuple(torch.cat(p, out_dim) for p in zip(*parts))
     return torch.cat(parts, out_dim)

@@ -83,10 +83,11 @@ def _working_bytes(cfg: TrainConfig, shape: DataShape) -> int:
         # tau on one batch and f on three, per elite: inputs, activations and gradients
         "dice": 2 * 4 * dyn.elites * cfg.dice.batch_size * (obs + act + sum(cfg.dice.hidden)) * FLOAT
         if cfg.algorithm == "drop" else 0,
-        # per start state: the sampled transition, one step's tensors (twice, as chunks and joined), the penalties,
-        # rewards and ratios kept over the horizon for the statistics; MOPO runs every member on every row
+        # per start state: its transitions over the horizon (added to the model buffer once the rollout is complete),
+        # one step's tensors (twice, as chunks and joined), the penalties, rewards and ratios kept over the horizon for
+        # the statistics; MOPO runs every member on every row
         "rollout": cfg.rollout.batch_size * FLOAT * (
-            shape.row_floats + 8 * (obs + act + 1) + 3 * cfg.horizon
+            cfg.horizon * shape.row_floats + 8 * (obs + act + 1) + 3 * cfg.horizon
             + (4 * dyn.members * out if cfg.algorithm == "mopo" else 0)),
         # the real and model batches and their join, the behaviour batch; the actor on three batches and both
         # critics on three, each layer's output and its gradient

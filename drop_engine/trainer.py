@@ -7,8 +7,10 @@ Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0
 `rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
 mixing real and model transitions, then evaluate every `eval_every` epochs. The whole state, RNGs included, is
 checkpointed at epoch ends and whenever the caller asks to stop, so a resumed run continues the same number stream.
-An evaluation can peak mid-run, so the actor of the best evaluation is kept too (in the checkpoint) and exported beside
-the last one.
+The caller's stop flag is asked inside every long phase (`stopping.py`); a stop part-way through one checkpoints the
+state as of the boundary before it (the epoch's start, or the end of its SAC steps), and a stop while the dynamics are
+fitted writes nothing, as there is nothing to resume yet. An evaluation can peak mid-run, so the actor of the best
+evaluation is kept too (in the checkpoint) and exported beside the last one.
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from .config import TrainConfig
 from .data import Dataset, Normalizer, load_dataset
 from .diagnostics import exploitation_stats
 from .dice import GradientDice
+from .divergence import check_finite
 from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from .envs import get_env
 from .evaluate import evaluate
@@ -37,6 +40,7 @@ from .nn import in_row_chunks
 from .rollout import ReplayBuffer, model_rollout
 from .sac import SAC, Actor
 from .scores import Which, summarize
+from .stopping import Stopped, check
 
 CHECKPOINT_FORMAT = 2  # 2: the best actor snapshot
 READABLE_FORMATS = (1, 2)  # a run stopped before the upgrade resumes; its earlier best weights were not kept
@@ -56,6 +60,7 @@ class TrainResult:
     policy: dict[Which, dict[str, str]] | None = None  # "last" and "best": file kind -> path
     dynamics: dict | None = None  # the DynamicsReport, and where the model came from: cache_key, from_cache, cache_path
     timings: dict[str, float] = field(default_factory=dict)
+    checkpoint: str | None = None  # where a stopped run resumes from; None if it stopped before writing any
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -128,10 +133,20 @@ class Trainer:
         self.timings: dict[str, float] = defaultdict(float)
 
     # ---------------------------------------------------------------- state
-    def state_dict(self) -> dict:
+    def _rng_state(self) -> dict:
         rng = {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state, "python": random.getstate()}
         if self.device.type == "cuda":
             rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        return rng
+
+    def _load_rng_state(self, rng: dict) -> None:
+        torch.set_rng_state(rng["torch"])
+        self.rng.bit_generator.state = rng["numpy"]
+        random.setstate(rng["python"])
+        if "cuda" in rng and self.device.type == "cuda":
+            torch.cuda.set_rng_state(rng["cuda"], self.device)
+
+    def state_dict(self) -> dict:
         return {
             "format": CHECKPOINT_FORMAT,
             "config": self.cfg.model_dump(mode="json"),
@@ -147,7 +162,7 @@ class Trainer:
             "evaluations": self.evaluations,
             "best": asdict(self.best) if self.best else None,
             "metric_sums": self.metric_sums, "metric_count": self.metric_count,
-            "rng": rng,
+            "rng": self._rng_state(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -168,12 +183,7 @@ class Trainer:
         best = state.get("best")
         self.best = BestActor(best["epoch"], best["score"], _cpu_copy(best["state"])) if best else None
         self.metric_sums, self.metric_count = dict(state["metric_sums"]), state["metric_count"]
-        rng = state["rng"]
-        torch.set_rng_state(rng["torch"])
-        self.rng.bit_generator.state = rng["numpy"]
-        random.setstate(rng["python"])
-        if "cuda" in rng and self.device.type == "cuda":
-            torch.cuda.set_rng_state(rng["cuda"], self.device)
+        self._load_rng_state(state["rng"])
 
     def checkpoint(self) -> Path:
         path = save_checkpoint(self.state_dict(), self.ckpt_dir, self.epoch, self.step_in_epoch, self.cfg.keep_checkpoints)
@@ -182,38 +192,37 @@ class Trainer:
 
     # ---------------------------------------------------------------- phases
     def train_dynamics(self) -> bool:
-        """Fit the ensemble, or load it from the model cache; False if the caller stopped it (nothing is checkpointed
-        or cached then). Either way the run's own RNG streams are untouched, so what follows is the same."""
+        """Fit the ensemble, or load it from the model cache; False if the caller stopped it, in its training or while
+        waiting for another run's (nothing is checkpointed or cached then). Either way the run's own RNG streams are
+        untouched, so what follows is the same."""
         cfg, seed = self.cfg.dynamics, self.cfg.seed
         total = cfg.max_epochs or 0
 
-        def on_epoch(epoch: int, holdout: float) -> bool:
+        def on_epoch(epoch: int, holdout: float) -> None:
             self.cb.on_progress("dynamics", 0, epoch, total)
-            self.cb.on_metrics({"dynamics/holdout_mse": holdout}, -epoch)
-            return self.cb.should_stop()
+            self._report({"dynamics/holdout_mse": holdout}, -epoch)
 
         def fit() -> DynamicsReport:
-            return train_dynamics(self.model, self.data, cfg, dynamics_rng(seed), self.device, on_epoch)
+            return train_dynamics(self.model, self.data, cfg, dynamics_rng(seed), self.device, on_epoch,
+                                  self.cb.should_stop)
 
         start = time.perf_counter()
         key = model_key(self.data, cfg, seed, self.device)
-        if self.model_cache is None:
-            report, from_cache = fit(), False
-        else:
-            found = self.model_cache.fetch_or_train(key, self.model, fit, self.cb.should_stop)
-            if found is None:
-                return False
-            report, from_cache = found
-        self.timings["dynamics"] += time.perf_counter() - start
-        if report.stopped_by == "cancelled":
+        try:
+            if self.model_cache is None:
+                report, from_cache = fit(), False
+            else:
+                report, from_cache = self.model_cache.fetch_or_train(key, self.model, fit, self.cb.should_stop)
+        except Stopped:
             return False
+        self.timings["dynamics"] += time.perf_counter() - start
         self.dynamics_report = report
         self.dynamics_source = {"cache_key": key, "from_cache": from_cache,
                                 "cache_path": str(self.model_cache.path(key)) if self.model_cache else None}
         if from_cache:
             self.cb.on_progress("dynamics", 0, report.epochs, report.epochs)
-        self.cb.on_metrics({"dynamics/elite_holdout_mse": float(np.mean(sorted(report.holdout_mse)[: len(report.elites)])),
-                            "dynamics/epochs": float(report.epochs), "dynamics/from_cache": float(from_cache)}, 0)
+        self._report({"dynamics/elite_holdout_mse": float(np.mean(sorted(report.holdout_mse)[: len(report.elites)])),
+                      "dynamics/epochs": float(report.epochs), "dynamics/from_cache": float(from_cache)}, 0)
         return True
 
     @torch.no_grad()
@@ -222,16 +231,19 @@ class Trainer:
 
         The ensemble is frozen after its training, so these are computed once instead of once per DICE step."""
         elites, obs, act = self.model.elites, self.real.data["obs"], self.real.data["act"]
-        mean, _ = in_row_chunks(lambda o, a: self.model(o, a, elites), obs, act, out_dim=1)
+        mean, _ = in_row_chunks(lambda o, a: self.model(o, a, elites), obs, act, out_dim=1,
+                                should_stop=self.cb.should_stop)
         self.successors = obs + mean[..., 1:]
         self.successor_alive = (~self.termination(obs, act, self.successors)).float()
 
     def train_dice(self, steps: int) -> dict[str, torch.Tensor]:
+        """`steps` updates of the estimators; the stop flag is asked before each and raises `Stopped`."""
         cfg, actor, dice = self.cfg.dice, self.sac.actor, self.dice
         if self.successors is None:
             self._cache_model_successors()
         out: dict[str, torch.Tensor] = {}
         for _ in range(steps):
+            check(self.cb.should_stop)
             idx = self.real.sample_indices(cfg.batch_size)
             obs, act = self.real.data["obs"][idx], self.real.data["act"][idx]
             next_obs, not_done = self.successors[:, idx], self.successor_alive[:, idx]
@@ -262,13 +274,19 @@ class Trainer:
             self.metric_sums[k] = self.metric_sums.get(k, 0.0) + v
         self.metric_count += 1
 
+    def _report(self, metrics: dict[str, float], step: int) -> None:
+        """Every metric goes to the callback through here, once checked to be finite (`divergence.py`)."""
+        check_finite(metrics, step)
+        self.cb.on_metrics(metrics, step)
+
     def _flush_metrics(self) -> None:
         if self.metric_count:
             values = torch.stack(list(self.metric_sums.values())).cpu() / self.metric_count
-            self.cb.on_metrics(dict(zip(self.metric_sums, values.tolist())), self.global_step)
+            self._report(dict(zip(self.metric_sums, values.tolist())), self.global_step)
         self.metric_sums, self.metric_count = {}, 0
 
-    def evaluate_now(self) -> dict:
+    def evaluate_now(self, epoch: int) -> dict:
+        """Evaluate the actor as that of `epoch` (which seeds the episodes); `Stopped` if the caller stops it."""
         actor, dev = self.sac.actor, self.device
 
         def policy(obs: np.ndarray) -> np.ndarray:
@@ -276,15 +294,17 @@ class Trainer:
                 return actor.act(torch.as_tensor(obs, device=dev), deterministic=True).cpu().numpy()
 
         start = time.perf_counter()
-        result = evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + self.epoch,
-                          version=self.cfg.env_version)
-        self.timings["evaluate"] += time.perf_counter() - start
-        record = {"epoch": self.epoch, "step": self.global_step, "return": result.mean_return,
+        try:
+            result = evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + epoch,
+                              version=self.cfg.env_version, should_stop=self.cb.should_stop)
+        finally:
+            self.timings["evaluate"] += time.perf_counter() - start
+        record = {"epoch": epoch, "step": self.global_step, "return": result.mean_return,
                   "return_std": result.std_return, "normalized_score": result.normalized_score}
         self.evaluations.append(record)
-        if summarize(self._scores()).best_epoch == self.epoch:
-            self.best = BestActor(self.epoch, result.normalized_score, _cpu_copy(actor.state_dict()))
-        self.cb.on_evaluation(self.epoch, result.mean_return, result.normalized_score)
+        if summarize(self._scores()).best_epoch == epoch:
+            self.best = BestActor(epoch, result.normalized_score, _cpu_copy(actor.state_dict()))
+        self.cb.on_evaluation(epoch, result.mean_return, result.normalized_score)
         return record
 
     def _timed(self, name: str, fn, *args):
@@ -295,18 +315,34 @@ class Trainer:
         self.timings[name] += time.perf_counter() - start
         return out
 
-    def _start_epoch(self) -> None:
+    def _start_epoch(self) -> bool:
+        """The epoch's DICE training and rollouts; False if stopped part-way. What they had changed by then is put
+        back (the estimators and their optimisers, the RNG streams; the rollouts fill the model buffer only once
+        complete), so the state is the epoch boundary's again and a resumed run does them exactly as this one would
+        have."""
         cfg = self.cfg
+        rng = self._rng_state()
+        dice = copy.deepcopy((self.dice.state_dict(), self.dice.optim_state())) if self.dice is not None else None
         stats: dict[str, torch.Tensor] = {}
-        if self.dice is not None:
-            steps = cfg.dice.pretrain_steps if self.epoch == 0 else cfg.dice.steps_per_epoch
-            stats.update(self._timed("dice", self.train_dice, steps))
-        starts = self.real.sample(cfg.rollout.batch_size)[0]
-        stats.update(self._timed("rollout", model_rollout, self.sac.actor, self.model, self.dice, starts, cfg.horizon,
-                                 cfg.algorithm, cfg.penalty, self.termination, self.model_buffer))
+        try:
+            if self.dice is not None:
+                steps = cfg.dice.pretrain_steps if self.epoch == 0 else cfg.dice.steps_per_epoch
+                stats.update(self._timed("dice", self.train_dice, steps))
+            starts = self.real.sample(cfg.rollout.batch_size)[0]
+            stats.update(self._timed("rollout", model_rollout, self.sac.actor, self.model, self.dice, starts,
+                                     cfg.horizon, cfg.algorithm, cfg.penalty, self.termination, self.model_buffer,
+                                     self.cb.should_stop))
+        except Stopped:
+            self._load_rng_state(rng)
+            if dice is not None:
+                self.dice.load_state_dict(dice[0])
+                self.dice.load_optim_state(dice[1])
+            return False
         stats.update(exploitation_stats(self.model, self.real, self.model_buffer))
         values = torch.stack([v.float() for v in stats.values()]).cpu().tolist()
-        self.cb.on_metrics(dict(zip(stats, values)), self.global_step)
+        self._report(dict(zip(stats, values)), self.global_step)
+        self.epoch_started = True
+        return True
 
     def _sac_steps(self) -> bool:
         """Run the rest of this epoch's SAC updates; False if stopped at a step boundary."""
@@ -327,6 +363,28 @@ class Trainer:
         finally:
             self.timings["sac"] += time.perf_counter() - start
 
+    def _end_epoch(self) -> bool:
+        """After the epoch's SAC steps: report them, evaluate if due, move on to the next epoch. False if stopped in
+        the evaluation: the position stays at the end of the SAC steps, from where a resumed run evaluates, and the
+        progress reported says so."""
+        cfg = self.cfg
+        self._flush_metrics()
+        epoch = self.epoch + 1
+        if epoch % cfg.eval_every == 0 or epoch == cfg.epochs:
+            try:
+                self.evaluate_now(epoch)
+            except Stopped:
+                return False
+        self.epoch, self.step_in_epoch, self.epoch_started = epoch, 0, False
+        self.cb.on_progress("train", epoch, self.global_step, cfg.epochs * cfg.steps_per_epoch)
+        return True
+
+    def _epoch(self) -> bool:
+        """The rest of the current epoch, from wherever the run is in it; False if the caller stopped it."""
+        if self.cb.should_stop() or not (self.epoch_started or self._start_epoch()):
+            return False
+        return self._sac_steps() and self._end_epoch()
+
     # ---------------------------------------------------------------- the loop
     def run(self) -> TrainResult:
         """Train to the end, resuming from the newest checkpoint if there is one."""
@@ -339,27 +397,13 @@ class Trainer:
             if not self.train_dynamics():
                 return self._result("stopped")
             self.checkpoint()
-        total = cfg.epochs * cfg.steps_per_epoch
         while self.epoch < cfg.epochs:
-            if self.cb.should_stop():
-                self.checkpoint()
-                return self._result("stopped")
             epoch_start, before = time.perf_counter(), dict(self.timings)
-            if not self.epoch_started:
-                self._start_epoch()
-                self.epoch_started = True
-            if not self._sac_steps():
-                self.checkpoint()
-                return self._result("stopped")
-            self._flush_metrics()
-            self.epoch += 1
-            self.step_in_epoch, self.epoch_started = 0, False
-            self.cb.on_progress("train", self.epoch, self.global_step, total)
-            if self.epoch % cfg.eval_every == 0 or self.epoch == cfg.epochs:
-                self.evaluate_now()
+            if not self._epoch():
+                return self._result("stopped", checkpoint=str(self.checkpoint()))
             self.timings["epochs"] += time.perf_counter() - epoch_start
-            self.cb.on_metrics({f"time/{k}": v - before.get(k, 0.0) for k, v in self.timings.items() if k != "dynamics"},
-                               self.global_step)
+            self._report({f"time/{k}": v - before.get(k, 0.0) for k, v in self.timings.items() if k != "dynamics"},
+                         self.global_step)
             if self.epoch % cfg.checkpoint_every == 0 or self.epoch == cfg.epochs:
                 self.checkpoint()
         self.cb.on_progress("export", self.epoch, 0, 1)
@@ -396,14 +440,15 @@ class Trainer:
         }
         return {k: str(v) for k, v in export_policy(actor, self.out / "policy" / which, metadata).items()}
 
-    def _result(self, status: str, policy: dict[Which, dict[str, str]] | None = None) -> TrainResult:
+    def _result(self, status: str, policy: dict[Which, dict[str, str]] | None = None,
+                checkpoint: str | None = None) -> TrainResult:
         last = self.evaluations[-1] if self.evaluations else None
         return TrainResult(
             status=status, epochs=self.epoch, global_step=self.global_step,
             last_return=last["return"] if last else None, **asdict(summarize(self._scores())),
             evaluations=list(self.evaluations), policy=policy,
             dynamics={**asdict(self.dynamics_report), **(self.dynamics_source or {})} if self.dynamics_report else None,
-            timings=dict(self.timings),
+            timings=dict(self.timings), checkpoint=checkpoint,
         )
 
 

@@ -14,6 +14,7 @@ from drop_engine.config import DynamicsConfig
 from drop_engine.data import Dataset
 from drop_engine.dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from drop_engine.model_cache import ModelCache, model_key
+from drop_engine.stopping import Stopped
 
 CPU = torch.device("cpu")
 TINY = DynamicsConfig(members=2, elites=1, hidden=8, layers=1, max_epochs=2, batch_size=256)
@@ -102,7 +103,8 @@ def test_stop_while_another_process_trains(tmp_path, hopper_dataset):
     model = build_ensemble(hopper_dataset.obs_dim, hopper_dataset.act_dim, TINY, 0, CPU)
     with open(tmp_path / f"{key}.lock", "a") as other:  # another open file: flock treats it as another process
         fcntl.flock(other, fcntl.LOCK_EX)
-        assert cache.fetch_or_train(key, model, lambda: pytest.fail("trained without the lock"), lambda: True) is None
+        with pytest.raises(Stopped):
+            cache.fetch_or_train(key, model, lambda: pytest.fail("trained without the lock"), lambda: True)
 
 
 def test_cancelled_training_is_not_stored(tmp_path, hopper_dataset):
@@ -110,12 +112,15 @@ def test_cancelled_training_is_not_stored(tmp_path, hopper_dataset):
     key = model_key(hopper_dataset, TINY, 0)
     model = build_ensemble(hopper_dataset.obs_dim, hopper_dataset.act_dim, TINY, 0, CPU)
 
-    def fit() -> DynamicsReport:
-        return train_dynamics(model, hopper_dataset, TINY, dynamics_rng(0), CPU, lambda epoch, holdout: True)
+    epochs = []
 
-    report, from_cache = cache.fetch_or_train(key, model, fit, lambda: False)
-    assert report.stopped_by == "cancelled" and not from_cache
-    assert not cache.path(key).exists()
+    def fit() -> DynamicsReport:
+        return train_dynamics(model, hopper_dataset, TINY, dynamics_rng(0), CPU, lambda epoch, _: epochs.append(epoch),
+                              should_stop=lambda: len(epochs) == 1)  # stopped at the first batch of the second epoch
+
+    with pytest.raises(Stopped):
+        cache.fetch_or_train(key, model, fit, lambda: False)
+    assert epochs == [1] and not cache.path(key).exists()
 
 
 def test_a_failed_store_warns_and_keeps_the_run(tmp_path, hopper_dataset, monkeypatch):

@@ -23,7 +23,8 @@ def test_run_log_is_continuous_across_stop_and_lost_writes(tmp_path, hopper_data
     Trainer(hopper_dataset, cfg, whole, RunLog(whole, cfg.steps_per_epoch)).run()
 
     split = tmp_path / "split"
-    first = Trainer(hopper_dataset, cfg, split, CallbackList(Recorder(stop_after=35), RunLog(split, cfg.steps_per_epoch)))
+    stop = Recorder(stop_in=Trainer._sac_steps, after=35)
+    first = Trainer(hopper_dataset, cfg, split, CallbackList(stop, RunLog(split, cfg.steps_per_epoch)))
     assert first.run().status == "stopped"
     # A lost attempt wrote past the checkpoint before dying, at the checkpoint's own step (an epoch start's metrics)
     # and later: none of that may stay in the history.

@@ -1,9 +1,11 @@
-"""Smoke runs of all three algorithms, exact stop-and-resume, and exported last and best policies that need only
-torch."""
+"""Smoke runs of all three algorithms, exact stop-and-resume from a stop in any phase, and exported last and best
+policies that need only torch."""
 import dataclasses
+import inspect
 import json
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -13,20 +15,34 @@ from drop_engine import trainer as trainer_module
 from drop_engine.callbacks import Callback
 from drop_engine.checkpoint import checkpoint_name, list_checkpoints, load_latest
 from drop_engine.config import build_config
+from drop_engine.dynamics import train_dynamics
+from drop_engine.evaluate import evaluate
 from drop_engine.export import load_policy
+from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer, train
 
 
+def _code(fn):
+    return inspect.unwrap(fn).__code__
+
+
 class Recorder(Callback):
-    def __init__(self, stop_after: int | None = None):
-        self.metrics, self.evaluations, self.checkpoints, self.phases = [], [], [], set()
-        self.asked, self.stop_after, self.starts = 0, stop_after, []
+    """Records everything, and counts the asks to stop made from inside each function (`asked_in`); with `stop_in`,
+    asks to stop from the ask after the first `after` of those made inside that function on."""
+
+    def __init__(self, stop_in=None, after: int = 0):
+        self.metrics, self.evaluations, self.checkpoints, self.phases, self.progress = [], [], [], set(), None
+        self.asks, self.stop_in, self.after, self.stopping, self.starts = Counter(), stop_in, after, False, []
+
+    def asked_in(self, fn) -> int:
+        return self.asks[_code(fn)]
 
     def on_start(self, resumed):
         self.starts.append(resumed)
 
     def on_progress(self, phase, epoch, step, total):
         self.phases.add(phase)
+        self.progress = (epoch, step)
 
     def on_metrics(self, metrics, step):
         self.metrics.append((step, dict(metrics)))
@@ -38,8 +54,12 @@ class Recorder(Callback):
         self.checkpoints.append(path)
 
     def should_stop(self):
-        self.asked += 1
-        return self.stop_after is not None and self.asked > self.stop_after
+        frame = sys._getframe(1)
+        while frame is not None:
+            self.asks[frame.f_code] += 1
+            frame = frame.f_back
+        self.stopping = self.stopping or (self.stop_in is not None and self.asked_in(self.stop_in) > self.after)
+        return self.stopping
 
 
 def _untimed(recorder):
@@ -119,23 +139,45 @@ def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_datase
     assert not torch.allclose(torch.as_tensor(actions["best"]), torch.as_tensor(actions["last"]))
 
 
-def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
-    cfg = _config("drop", epochs=3)
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     whole = Recorder()
-    a = Trainer(hopper_dataset, cfg, tmp_path / "a", whole)
-    result_a = a.run()
+    trainer = Trainer(hopper_dataset, _config("drop", epochs=3), tmp_path_factory.mktemp("whole"), whole)
+    trainer.run()
+    return trainer, whole
 
-    first = Recorder(stop_after=35)  # mid-way through epoch 2's SAC steps
+
+@pytest.mark.parametrize("phase", ["sac", "dice", "rollout", "evaluate"])
+def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset, uninterrupted, phase):
+    """Stopped mid-way through a phase, then resumed: the same numbers as a run never stopped. A stop inside the
+    epoch's DICE training or rollouts checkpoints the epoch's start; one inside an evaluation, the end of the SAC steps
+    before it."""
+    a, whole = uninterrupted
+    cfg = a.cfg
+    fn = {"sac": Trainer._sac_steps, "dice": Trainer.train_dice, "rollout": model_rollout, "evaluate": evaluate}[phase]
+    # sac: mid-way through epoch 2's SAC steps; the others: mid-way through all the asks the phase made in the run
+    after = 35 if phase == "sac" else whole.asked_in(fn) // 2
+    first = Recorder(stop_in=fn, after=after)
     b1 = Trainer(hopper_dataset, cfg, tmp_path / "b", first)
-    assert b1.run().status == "stopped"
-    assert b1.epoch == 1 and 0 < b1.step_in_epoch < cfg.steps_per_epoch
-    # The best actor so far (of epoch 1's evaluation) is in the checkpoint, so a resumed run can still export it.
+    stopped = b1.run()
+    assert stopped.status == "stopped" and first.asked_in(fn) == after + 1  # it stopped inside the phase
+    assert stopped.checkpoint == str(list_checkpoints(tmp_path / "b" / "checkpoints")[-1])
+    if phase == "sac":
+        assert b1.epoch == 1 and 0 < b1.step_in_epoch < cfg.steps_per_epoch
+    else:
+        assert (b1.epoch_started, b1.step_in_epoch) == {
+            "dice": (False, 0), "rollout": (False, 0), "evaluate": (True, cfg.steps_per_epoch)}[phase]
+    assert b1.evaluations == a.evaluations[: len(b1.evaluations)]
+    assert first.progress[0] == b1.epoch, "the progress reported last is no further than where the run stopped"
+    # The position and the best actor so far are in the checkpoint, so a resumed run can still export that actor.
     probe = Trainer(hopper_dataset, cfg, tmp_path / "probe")
     probe.load_state_dict(load_latest(tmp_path / "b" / "checkpoints"))
-    assert (probe.best.epoch, probe.best.score) == (b1.best.epoch, b1.best.score)
-    assert (b1.best.epoch, b1.best.score) == (1, result_a.evaluations[0]["normalized_score"])
-    for name, pb in b1.best.state.items():
-        assert torch.equal(pb, probe.best.state[name]), name
+    assert (probe.epoch, probe.step_in_epoch, probe.epoch_started) == (b1.epoch, b1.step_in_epoch, b1.epoch_started)
+    assert (probe.best is None) is (b1.best is None)
+    if b1.best is not None:
+        assert (probe.best.epoch, probe.best.score) == (b1.best.epoch, b1.best.score)
+        for name, pb in b1.best.state.items():
+            assert torch.equal(pb, probe.best.state[name]), name
     second = Recorder()
     b2 = Trainer(hopper_dataset, cfg, tmp_path / "b", second)
     result_b = b2.run()
@@ -145,7 +187,9 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
     assert (whole.starts, first.starts, second.starts) == ([None], [None], [(b1.epoch, b1.step_in_epoch)])
     for (name, pa), pb in zip(a.sac.state_dict().items(), b2.sac.state_dict().values()):
         assert torch.equal(pa, pb), name
-    assert result_a.evaluations == result_b.evaluations
+    for (name, pa), pb in zip(a.dice.state_dict().items(), b2.dice.state_dict().values()):
+        assert torch.equal(pa, pb), name
+    assert a.evaluations == result_b.evaluations
     assert (a.best.epoch, a.best.score) == (b2.best.epoch, b2.best.score)
     for name, pa in a.best.state.items():
         assert torch.equal(pa, b2.best.state[name]), name
@@ -154,8 +198,8 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset):
 
 
 def test_stop_during_dynamics_leaves_no_checkpoint(tmp_path, hopper_dataset):
-    result = train(hopper_dataset, _config("mopo"), tmp_path, Recorder(stop_after=0))
-    assert result.status == "stopped" and result.epochs == 0
+    result = train(hopper_dataset, _config("mopo"), tmp_path, Recorder(stop_in=train_dynamics, after=3))
+    assert result.status == "stopped" and result.epochs == 0 and result.checkpoint is None
     assert not list_checkpoints(tmp_path / "checkpoints")
 
 
@@ -209,7 +253,8 @@ def test_a_checkpoint_of_format_1_still_resumes(tmp_path, hopper_dataset):
     """A run stopped before the best snapshot existed resumes after the upgrade, and its best policy says why it is the
     last one when the best evaluation came before the resume."""
     cfg = _config("mopo", epochs=3)
-    assert Trainer(hopper_dataset, cfg, tmp_path, Recorder(stop_after=35)).run().status == "stopped"
+    stop = Recorder(stop_in=Trainer._sac_steps, after=35)
+    assert Trainer(hopper_dataset, cfg, tmp_path, stop).run().status == "stopped"
     path = list_checkpoints(tmp_path / "checkpoints")[-1]
     state = torch.load(path, weights_only=False)
     state["format"] = 1

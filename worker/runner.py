@@ -26,6 +26,7 @@ from app.storage import job_dir, model_cache_dir
 from app.storage_errors import storage_failure
 
 from .callback import DbCallback
+from .failures import unexpected_failure
 
 log = logging.getLogger("drop.worker")
 
@@ -184,6 +185,7 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
 
     from drop_engine.config import TrainConfig
     from drop_engine.data import DatasetError
+    from drop_engine.divergence import TrainingDiverged
     from drop_engine.trainer import train
 
     job_id = job.id
@@ -195,6 +197,9 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     except DatasetError as exc:
         _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
         return "failed"
+    except TrainingDiverged as exc:
+        _fail(sessions, job_id, attempt, "training_diverged", str(exc), traceback.format_exc())
+        return "failed"
     except Exception as exc:
         # The soft limit is raised from a signal handler wherever the job happens to be, and a library may wrap
         # it in its own error type (psycopg, interrupted mid-query): past the deadline, any failure is the timeout.
@@ -205,22 +210,25 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
             return "failed"
         log.exception("job %s failed", job_id)
         # A full or read-only disk fails the job rather than retrying it: another attempt would meet the same disk.
-        code, message = (storage_failure(exc, "the run's checkpoint or policy")
-                         or ("training_error", f"{type(exc).__name__}: {exc}"))
+        code, message = storage_failure(exc, "the run's checkpoint or policy") or unexpected_failure(exc)
         _fail(sessions, job_id, attempt, code, message, traceback.format_exc())
         return "failed"
     if result.status == "completed":
         _add_onnx(sessions, job_id, result, dataset.obs_dim)
         finish(sessions, job_id, attempt, "succeeded", "succeeded", result=result.to_dict())
         return "succeeded"
+    # A run stopped while fitting its dynamics model has written no checkpoint yet: say so, not that it wrote one.
+    checkpointed = result.checkpoint is not None
     if callback.stop_reason == "cancelled":
-        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written",
+        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written"
+               if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
                result=result.to_dict())
         return "cancelled"
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
         # next worker to start (or of any live one) sends it, because enqueued_at is cleared.
-        if requeue(sessions, job_id, attempt, "re-queued: its worker is shutting down; will resume from checkpoint"):
+        then = "will resume from checkpoint" if checkpointed else "will start over (stopped before its first checkpoint)"
+        if requeue(sessions, job_id, attempt, f"re-queued: its worker is shutting down; {then}"):
             return "requeued"
         if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
                   result=result.to_dict()):

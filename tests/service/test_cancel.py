@@ -1,9 +1,14 @@
 """Cancellation of a queued and of a running job (the running one stops at its next step with a final checkpoint),
 cancelling twice (the same answer, no second transition), cancelling a finished job (409), and the dataset that
-cannot be deleted while a job uses it."""
+cannot be deleted while a job uses it; a cancel in the middle of a long dynamics epoch."""
 from __future__ import annotations
 
 import time
+
+import numpy as np
+
+from drop_engine.collect import read_arrays
+from drop_engine.data import save_hdf5
 
 
 def test_cancel_running_and_queued(alice, worker, hopper_file):
@@ -55,6 +60,34 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     time.sleep(2)
     job = alice.get(f"/v1/jobs/{queued['id']}").json()
     assert job["status"] == "cancelled" and job["attempts"] == 0 and job["started_at"] is None
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
+    """An epoch of this fit takes tens of seconds, yet the cancel lands within seconds, and the job does not claim a
+    checkpoint: none was written."""
+    arrays, attrs = read_arrays(hopper_file)
+    path = tmp_path / "hopper-x7.hdf5"
+    core = {k: v for k, v in arrays.items() if not k.startswith("infos/")}  # under the upload limit
+    save_hdf5(path, {k: np.concatenate([v] * 7) for k, v in core.items()}, attrs)  # 14,000 rows
+    ds = alice.upload(path).json()
+    dynamics = {"members": 7, "elites": 5, "hidden": 800, "layers": 4, "batch_size": 256, "max_epochs": 1000,
+                "patience": 1000}
+    job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "overrides": {"dynamics": dynamics}})
+    assert job.status_code == 201, job.json()
+    job = alice.wait(job.json()["id"], {"running"}, timeout=60)
+    time.sleep(3)  # into the first epoch: its engine is imported and its data loaded by now
+
+    asked = time.monotonic()
+    assert alice.post(f"/v1/jobs/{job['id']}/cancel").status_code == 202
+    done = alice.wait(job["id"], {"cancelled", "succeeded", "failed"}, timeout=60)
+    took = time.monotonic() - asked
+    assert done["status"] == "cancelled" and took < 5, (took, done)
+    assert (done["progress"] or {}).get("step", 0) == 0, "stopped inside the first epoch"
+    events = alice.get(f"/v1/jobs/{job['id']}/events", params={"limit": 1000}).json()["data"]
+    assert events[-1]["message"] == "cancelled before its first checkpoint; nothing to resume was written"
+    assert not any(e["type"] == "checkpoint" for e in events)
+    assert alice.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"] == []
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
 
 

@@ -1,15 +1,20 @@
 """`drop serve` end to end: SQLite, Celery's filesystem transport and one embedded worker, nothing else. Stopping it
-mid-job checkpoints and re-queues the job, and the next `drop serve` finishes it from that checkpoint."""
+mid-job by SIGTERM, SIGINT or SIGHUP (or killing it) stops its whole process tree, checkpoints and re-queues the job,
+and the next `drop serve` finishes it from that checkpoint."""
 from __future__ import annotations
 
 import io
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
+from collections import defaultdict
+from pathlib import Path
 
 import httpx
+import pytest
 import torch
 
 from .conftest import REPO, free_port, wait_ready
@@ -31,13 +36,36 @@ class Serve:
         wait_ready(http, self.proc, self.log_path)
         return http
 
-    def stop(self, timeout: float = 60) -> int:
-        self.proc.send_signal(signal.SIGINT)
+    def stop(self, sig: signal.Signals = signal.SIGINT, timeout: float = 60) -> int:
+        self.proc.send_signal(sig)
         try:
             return self.proc.wait(timeout)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             raise
+
+
+def _stat(pid: int) -> list[str] | None:
+    """/proc/PID/stat's fields after the command (state, parent, ...); None for a process that is gone or a zombie."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return fields if fields[0] != "Z" else None
+
+
+def _tree(root: int) -> set[int]:
+    """`root` and every live process below it."""
+    children: dict[int, list[int]] = defaultdict(list)
+    for pid in (int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()):
+        if fields := _stat(pid):
+            children[int(fields[1])].append(pid)
+    tree, todo = {root}, [root]
+    while todo:
+        for child in children[todo.pop()]:
+            tree.add(child)
+            todo.append(child)
+    return tree
 
 
 def _wait(http, job_id, until, timeout=120) -> dict:
@@ -48,19 +76,37 @@ def _wait(http, job_id, until, timeout=120) -> dict:
     return job
 
 
-def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file):
+def _assert_ended(pids: set[int], grace_s: float = 10) -> None:
+    """Every process ended within `grace_s`: multiprocessing's helpers (the validation's forkserver, the resource
+    tracker) end by themselves once they see their parent gone, a moment after it."""
+    deadline = time.monotonic() + grace_s
+    while left := [pid for pid in pids if _stat(pid)]:
+        assert time.monotonic() < deadline, {pid: Path(f"/proc/{pid}/cmdline").read_bytes() for pid in left}
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGKILL], ids=lambda s: s.name)
+def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file, sig):
+    """SIGKILL leaves no chance to stop the worker: it stops by itself when its parent dies."""
     serve = Serve(tmp_path)
     http = serve.start()
     try:
         ds = http.post("/v1/datasets", content=hopper_file.read_bytes(),
                        headers={"Content-Type": "application/x-hdf5"}).json()  # no token: auth is off
         job = http.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "algorithm": "mopo",
-                                          "overrides": {"epochs": 5}}).json()
+                                          "overrides": {"epochs": 30}}).json()  # still running when stopped
         assert job["status"] == "queued", job
         _wait(http, job["id"], lambda j: j["status"] == "running" and (j["progress"] or {}).get("epoch", 0) >= 1)
+        tree = _tree(serve.proc.pid)
+        assert len(tree) >= 3, "drop serve, its worker and the worker's pool process running the job"
     finally:
         http.close()
-        assert serve.stop() == 0, serve.log_path.read_text()[-3000:]
+        assert serve.stop(sig) == (-sig if sig == signal.SIGKILL else 0), serve.log_path.read_text()[-3000:]
+    _assert_ended(tree)
+    with sqlite3.connect(tmp_path / "data" / "drop.db") as db:
+        assert db.execute("SELECT status FROM jobs WHERE id = ?", (job["id"],)).fetchone() == ("queued",)
+        checkpoints = [Path(p) for (p,) in db.execute("SELECT path FROM job_checkpoints WHERE job_id = ?", (job["id"],))]
+    assert checkpoints and all(p.is_file() for p in checkpoints)
 
     http = serve.start()
     try:
