@@ -103,11 +103,12 @@ def test_jobs_over_the_server_limits_are_422(apis, overrides, field, setting):
 
 def test_the_memory_detail_says_where_it_goes(apis):
     """Smoke DROP on 39 rows: a model buffer of 10^6 rollouts x 1,000 steps x 2 epochs x 108-byte rows, and rollouts
-    keeping 3 floats per step for the statistics besides each start state's tensors."""
+    holding their 1,000 transitions until complete, with 3 floats per step for the statistics besides each start
+    state's tensors."""
     r = _post(apis, '{"rollout": {"batch_size": 1000000, "horizon": 1000}}')
     assert _refused(r, "job_over_limit", "estimate.memory_bytes")["detail"] == (
-        "estimated memory 213 GiB (process 400 MiB, parameters 257 KiB, data 11.9 KiB, model buffer 201 GiB, "
-        "largest phase 11.7 GiB) exceeds the server's limit of 8 GiB (DROP_MAX_JOB_MEMORY_BYTES)")
+        "estimated memory 314 GiB (process 400 MiB, parameters 257 KiB, data 11.9 KiB, model buffer 201 GiB, "
+        "largest phase 112 GiB) exceeds the server's limit of 8 GiB (DROP_MAX_JOB_MEMORY_BYTES)")
 
 
 @pytest.mark.parametrize("preset", PRESETS)
