@@ -114,9 +114,14 @@ def service(folder: Path, upload_bytes: int, repo: Path = REPO,
             finally:
                 kill_group(api)
         finally:
-            client = redis.Redis.from_url(REDIS_URL)
-            for key in client.scan_iter(f"{queue}*"):
-                client.delete(key)
+            drop_queue(queue)
+
+
+def drop_queue(queue: str) -> None:
+    """Remove a bench run's Celery queue keys, so runs leave nothing in the shared Redis."""
+    client = redis.Redis.from_url(REDIS_URL)
+    for key in client.scan_iter(f"{queue}*"):
+        client.delete(key)
 
 
 @contextmanager
@@ -149,9 +154,7 @@ def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) 
             finally:
                 kill_group(api)
         finally:
-            client = redis.Redis.from_url(REDIS_URL)
-            for key in client.scan_iter(f"{settings.queue}*"):
-                client.delete(key)
+            drop_queue(settings.queue)
 
 
 def wrk(url: str, token: str, seconds: float, connections: int = 16) -> tuple[float, int]:

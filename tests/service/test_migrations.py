@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import pytest
+from sqlalchemy import text
 
 from app.cli import main
+from app.db import upgrade
 from app.main import NotMigrated, create_app
 from app.settings import Settings
 
@@ -22,17 +24,23 @@ def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, cap
     assert token.startswith("drop_") and len(token) > 40
 
 
-def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
+def _old_database(tmp_path, revision: str):
+    """A SQLite database migrated only up to `revision`, holding one owner: where an upgrade finds recorded rows."""
     from alembic import command
-    from sqlalchemy import text
 
-    from app.db import alembic_config, make_engine, upgrade
+    from app.db import alembic_config, make_engine
 
     url = f"sqlite:///{tmp_path / 'old.db'}"
-    command.upgrade(alembic_config(url), "0001")
+    command.upgrade(alembic_config(url), revision)
     engine = make_engine(url)
     with engine.begin() as conn:
         conn.execute(text("INSERT INTO owners (id, name, created_at) VALUES ('own_1', 'old', CURRENT_TIMESTAMP)"))
+    return url, engine
+
+
+def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
+    url, engine = _old_database(tmp_path, "0001")
+    with engine.begin() as conn:
         for job_id in ("job_evaluated", "job_queued"):
             conn.execute(text(
                 "INSERT INTO jobs (id, owner_id, algorithm, env, preset, overrides, seed, config, status, attempts, "
@@ -50,16 +58,8 @@ def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
 
 
 def test_upgrade_fills_the_decoded_size_of_recorded_datasets(tmp_path):
-    from alembic import command
-    from sqlalchemy import text
-
-    from app.db import alembic_config, make_engine, upgrade
-
-    url = f"sqlite:///{tmp_path / 'old.db'}"
-    command.upgrade(alembic_config(url), "0003")
-    engine = make_engine(url)
+    url, engine = _old_database(tmp_path, "0003")
     with engine.begin() as conn:
-        conn.execute(text("INSERT INTO owners (id, name, created_at) VALUES ('own_1', 'old', CURRENT_TIMESTAMP)"))
         conn.execute(text(
             "INSERT INTO datasets (id, owner_id, name, format, sha256, size_bytes, path, env, obs_dim, act_dim, report, "
             "created_at) VALUES ('ds_1', 'own_1', 'lazy', 'hdf5', '', 7000, '/x', 'hopper', 11, 3, "
