@@ -1,7 +1,8 @@
 """Typed training configuration, presets and overrides.
 
 A run is fully described by one `TrainConfig`; `build_config` composes it from the per-dataset settings of the official
-code (penalty, horizon, DICE), a size preset (`paper`, `cpu`, `smoke`) and user overrides, in that order, and validates
+code (penalty, horizon, DICE), a preset (`paper` as published; `cpu`, smaller and with the stabilisers of
+bench/QUALITY.md; `smoke` for tests) and user overrides, in that order, and validates
 the result, so a bad override is rejected before any work starts.
 """
 from __future__ import annotations
