@@ -80,6 +80,10 @@ class SACConfig(_Strict):
         "mean", description="what the behaviour term pulls to the data's action: the deterministic action tanh(mu(s)), "
                             "as TD3+BC, or a reparameterised sample of the policy, which also keeps its spread near the "
                             "data's (the stochastic policy is what rollouts and DICE see)")
+    critic_layer_norm: bool = Field(
+        False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
+                           "beyond the values it was fitted on, the over-estimation that made hopper collapse "
+                           "(bench/QUALITY.md E5); False is the paper's plain MLP")
 
 
 class RolloutConfig(_Strict):

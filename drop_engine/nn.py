@@ -5,6 +5,7 @@ import math
 from typing import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .stopping import StopFlag, check, never
@@ -33,19 +34,37 @@ class EnsembleLinear(nn.Module):
         return f"members={self.members}, in={self.in_features}, out={self.out_features}"
 
 
-class EnsembleMLP(nn.Module):
-    """M MLPs with the same shape; returns (M, N, out) and optionally the last hidden features."""
+class EnsembleLayerNorm(nn.Module):
+    """Layer normalisation over the features of each row, with a gain and bias per member."""
 
-    def __init__(self, members: int, in_dim: int, hidden: Sequence[int], out_dim: int, activation: type[nn.Module] = nn.ReLU):
+    def __init__(self, members: int, features: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(members, 1, features))
+        self.bias = nn.Parameter(torch.zeros(members, 1, features))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.addcmul(self.bias, F.layer_norm(x, x.shape[-1:]), self.weight)
+
+
+class EnsembleMLP(nn.Module):
+    """M MLPs with the same shape; returns (M, N, out) and optionally the last hidden features. With `layer_norm`
+    each hidden layer is linear, then layer norm, then the activation."""
+
+    def __init__(self, members: int, in_dim: int, hidden: Sequence[int], out_dim: int,
+                 activation: type[nn.Module] = nn.ReLU, layer_norm: bool = False):
         super().__init__()
         sizes = [in_dim, *hidden]
         self.hidden = nn.ModuleList(EnsembleLinear(members, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.norms = nn.ModuleList(EnsembleLayerNorm(members, b) for b in sizes[1:]) if layer_norm else None
         self.act = activation()
         self.out = EnsembleLinear(members, sizes[-1], out_dim)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        for layer in self.hidden:
-            x = self.act(layer(x))
+        for i, layer in enumerate(self.hidden):
+            x = layer(x)
+            if self.norms is not None:
+                x = self.norms[i](x)
+            x = self.act(x)
         return x
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

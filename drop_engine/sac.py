@@ -41,10 +41,10 @@ class Actor(nn.Module):
 
 
 class TwinCritic(nn.Module):
-    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...]):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...], layer_norm: bool = False):
         super().__init__()
         self.norm = Standardize(obs_dim)
-        self.net = EnsembleMLP(2, obs_dim + act_dim, hidden, 1)
+        self.net = EnsembleMLP(2, obs_dim + act_dim, hidden, 1, layer_norm=layer_norm)
 
     def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """Q-values of both critics, (2, N)."""
@@ -58,7 +58,7 @@ class SAC(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.actor = Actor(obs_dim, act_dim, cfg.hidden)
-        self.critic = TwinCritic(obs_dim, act_dim, cfg.hidden)
+        self.critic = TwinCritic(obs_dim, act_dim, cfg.hidden, cfg.critic_layer_norm)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = nn.Parameter(torch.zeros(()))
         self.target_entropy = float(cfg.target_entropy if cfg.target_entropy is not None else -act_dim)

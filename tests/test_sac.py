@@ -78,3 +78,17 @@ def test_behaviour_term_on_samples_also_holds_the_spread():
             assert (sac.actor.act(torch.zeros(1, 1), deterministic=True) + 0.5).abs().item() < 0.15, mode
         spread[mode] = (samples + 0.5).pow(2).mean().sqrt().item()  # how far samples fall from the data's action
     assert spread["sample"] < 0.5 * spread["mean"], spread
+
+
+def test_critic_layer_norm_bounds_extrapolation():
+    """With layer norm every hidden row has unit scale, so Q stays within a bound set by the output layer however far
+    the input lies from the data; a plain ReLU critic's Q grows with the input's scale."""
+    torch.manual_seed(0)
+    obs, act = torch.randn(256, 3), torch.rand(256, 2) * 2 - 1
+    growth = {}
+    for layer_norm in (False, True):
+        critic = SAC(3, 2, SACConfig(hidden=(64, 64), critic_layer_norm=layer_norm)).critic
+        with torch.no_grad():
+            growth[layer_norm] = (critic(obs * 1e4, act).abs().max() / critic(obs, act).abs().max()).item()
+    assert growth[False] > 100
+    assert growth[True] < 10
