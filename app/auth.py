@@ -9,8 +9,8 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from .ids import new_id
-from .models import Owner, Token, utcnow
+from kernel.ids import new_id
+from kernel.models import Owner, Token, utcnow
 from .problems import Problem
 
 LOCAL_OWNER = "local"

@@ -15,17 +15,18 @@ from .procs import SUPERVISOR_ENV, serve_worker
 
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
 GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
+WORKER_APP = "worker.tasks:celery"  # named, as uvicorn's app is: the API's package does not import the worker's
 
 
 def _settings():
-    from .settings import get_settings
+    from kernel.settings import get_settings
 
     get_settings.cache_clear()
     return get_settings()
 
 
 def _check_migrated(settings) -> bool:
-    from .db import make_engine, schema_problem
+    from kernel.db import make_engine, schema_problem
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -39,7 +40,7 @@ def _check_migrated(settings) -> bool:
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
-    from .db import upgrade
+    from kernel.db import upgrade
 
     settings = _settings()
     settings.ensure_dirs()
@@ -50,7 +51,7 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def _with_sessions(run) -> int:
     """Run `run(sessionmaker)` against the configured database, once it is at the newest migration."""
-    from .db import make_engine, make_sessionmaker
+    from kernel.db import make_engine, make_sessionmaker
 
     settings = _settings()
     if not _check_migrated(settings):
@@ -156,7 +157,7 @@ def _run_api(settings, host: str, port: int, workers: int) -> int:
 
 
 def _configure_logs(settings, level: str | None = None) -> None:
-    from .logs import configure
+    from kernel.logs import configure
 
     configure(settings.log_format, level or settings.log_level)
 
@@ -174,12 +175,12 @@ def cmd_worker(args: argparse.Namespace) -> int:
     settings.ensure_dirs()
     if not _check_migrated(settings):
         return 2
-    from worker.tasks import celery
+    from celery.bin.celery import celery
 
     concurrency = args.concurrency or settings.worker_concurrency
-    celery.worker_main(["worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
-                        "--without-gossip", "--without-mingle", "--without-heartbeat",
-                        "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel])
+    celery.main(args=["-A", WORKER_APP, "worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
+                      "--without-gossip", "--without-mingle", "--without-heartbeat",
+                      "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel], standalone_mode=False)
     return 0
 
 

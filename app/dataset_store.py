@@ -11,13 +11,13 @@ from drop_engine.data_rows import DataShape
 
 from . import quotas
 from .deps import owned_dataset
-from .ids import new_id
+from kernel.ids import new_id
 from .metrics import UPLOAD_BYTES, VALIDATION_SECONDS
-from .models import ACTIVE_STATUSES, Dataset, Job
+from kernel.models import ACTIVE_STATUSES, Dataset, Job
 from .owner_lock import lock_owner
 from .problems import Problem
-from .settings import Settings
-from .storage import dataset_dir, remove_tree, upload_dir
+from kernel.settings import Settings
+from kernel.storage import dataset_dir, remove_tree, upload_dir
 from .upload import Upload, receive
 from .validate import Invalid
 

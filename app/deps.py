@@ -8,10 +8,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, defer
 
 from .auth import current_owner
-from .ids import id_pattern, is_id
-from .models import Dataset, Job
+from kernel.ids import id_pattern, is_id
+from kernel.models import Dataset, Job
 from .problems import Problem
-from .settings import Settings
+from kernel.settings import Settings
 
 
 def settings(request: Request) -> Settings:

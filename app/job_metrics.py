@@ -13,7 +13,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from sqlalchemy import case, func, select
 from sqlalchemy.engine import Engine
 
-from .models import FINAL_STATUSES, JOB_STATUSES, Job
+from kernel.models import FINAL_STATUSES, JOB_STATUSES, Job
 
 QUEUE_WAIT_BUCKETS = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 24 * 3600)
 RUN_BUCKETS = (10, 60, 300, 900, 3600, 3 * 3600, 12 * 3600, 24 * 3600, 72 * 3600)

@@ -6,9 +6,9 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from . import joblimits
-from .models import Dataset
+from kernel.models import Dataset
 from .problems import Problem
-from .settings import Settings
+from kernel.settings import Settings
 
 # Identity fields are job fields, and the device and threads belong to the worker: not overridable.
 ALGORITHMS = ("drop", "mopo", "mbpo")

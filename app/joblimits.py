@@ -7,7 +7,7 @@ from drop_engine.config import TrainConfig
 from drop_engine.resources import DataShape, ResourceEstimate, estimate
 
 from .problems import Problem
-from .settings import Settings
+from kernel.settings import Settings
 
 
 def _size(n: int) -> str:

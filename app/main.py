@@ -8,17 +8,19 @@ from typing import AsyncIterator
 
 from fastapi import FastAPI
 
+from kernel.db import make_engine, make_reader, make_sessionmaker, schema_problem
+from kernel.logs import configure
+from kernel.queue import enqueue, make_celery
+from kernel.settings import Settings, get_settings
+
 from . import problems
 from .body_timeout import IdleBody
-from .db import make_engine, make_reader, make_sessionmaker, schema_problem
 from .event_bus import EventWaker, listen
 from .job_metrics import JobMetrics
 from .limits import BodyLimit
-from .logs import configure
 from .observe import ObserveRequests
 from .procs import supervised
 from .routers import datasets, health, jobs, metrics, outputs
-from .settings import Settings, get_settings
 from .slots import stream_slots, upload_slots
 from .token_cache import TokenCache
 from .validate import Validator
@@ -32,8 +34,6 @@ class NotMigrated(RuntimeError):
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    from worker.celery_app import enqueue, make_celery
-
     settings = settings or get_settings()
     settings.ensure_dirs()
     engine = make_engine(settings.sqlalchemy_url)

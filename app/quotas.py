@@ -11,10 +11,10 @@ from typing import Callable
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from .models import ACTIVE_STATUSES, Dataset, Job
+from kernel.models import ACTIVE_STATUSES, Dataset, Job
 from .owner_lock import lock_owner
 from .problems import Problem
-from .settings import Settings
+from kernel.settings import Settings
 
 RETRY_AFTER_S = 60  # jobs take minutes; asking again sooner is pointless
 

@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session, defer, sessionmaker
 
 from . import serialize
 from .deps import owned_job
-from .models import JOB_STATUSES, Job, JobEvent
+from kernel.models import JOB_STATUSES, Job, JobEvent
 from .problems import Problem
 
 

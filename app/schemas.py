@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 
 from drop_engine.scores import FINAL_WINDOW
 
-from .models import JOB_STATUSES
+from kernel.models import JOB_STATUSES
 
 Item = TypeVar("Item")
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from datetime import datetime, timezone
 
-from .models import Dataset, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from kernel.models import Dataset, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 
 
 def iso(value: datetime | None) -> str | None:

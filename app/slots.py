@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from typing import Callable, Iterator, Literal
 
 from .problems import Problem
-from .settings import Settings
+from kernel.settings import Settings
 
 Bound = Literal["owner", "total"]
 UPLOAD_RETRY_AFTER_S = 10  # an upload and its validation take seconds to minutes

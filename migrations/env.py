@@ -1,9 +1,9 @@
 """Alembic environment: the URL comes from the Config (set by `drop db upgrade`) or else from DROP_ settings."""
 from alembic import context
 
-from app.db import make_engine
-from app.models import Base
-from app.settings import Settings
+from kernel.db import make_engine
+from kernel.models import Base
+from kernel.settings import Settings
 
 config = context.config
 url = config.get_main_option("sqlalchemy.url") or Settings().sqlalchemy_url

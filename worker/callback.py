@@ -11,9 +11,9 @@ from typing import Callable, Mapping
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from drop_engine.callbacks import Callback
 from drop_engine.scores import summarize
+from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 
 PROGRESS_EVERY_S = 1.0
 

@@ -13,8 +13,8 @@ from typing import Callable
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Job, JobEvent, utcnow
-from app.settings import Settings
+from kernel.models import Job, JobEvent, utcnow
+from kernel.settings import Settings
 
 log = logging.getLogger("drop.reaper")
 Enqueue = Callable[[str, int], None]

@@ -18,12 +18,12 @@ from typing import Callable
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.exc_chain import causes
-from app.logs import bound
-from app.models import Dataset, Job, JobEvent, utcnow
-from app.settings import Settings
-from app.storage import job_dir, model_cache_dir
-from app.storage_errors import storage_failure
+from kernel.exc_chain import causes
+from kernel.logs import bound
+from kernel.models import Dataset, Job, JobEvent, utcnow
+from kernel.settings import Settings
+from kernel.storage import job_dir, model_cache_dir
+from kernel.storage_errors import storage_failure
 
 from .callback import DbCallback
 from .failures import unexpected_failure

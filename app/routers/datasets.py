@@ -8,9 +8,9 @@ from sqlalchemy.orm import Session
 from .. import dataset_store, serialize
 from ..deps import DB, Config, Owner, DatasetCursor, owned_dataset
 from ..metrics import counting_rejections
-from ..models import Dataset
+from kernel.models import Dataset
 from ..schemas import DatasetOut, Page
-from ..settings import Settings
+from kernel.settings import Settings
 
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
 

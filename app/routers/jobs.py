@@ -14,13 +14,13 @@ from sqlalchemy.orm import Session
 
 from .. import quotas, reads, serialize
 from ..deps import DB, Config, Owner, JobCursor, owned_dataset, owned_job
-from ..ids import new_id
+from kernel.ids import new_id
 from ..jobcreate import JobRequest, build
-from ..models import JOB_STATUSES, Job, JobEvent, utcnow
+from kernel.models import JOB_STATUSES, Job, JobEvent, utcnow
 from ..owner_lock import lock_owner
 from ..problems import Problem
 from ..schemas import JobOut, Page
-from ..settings import Settings
+from kernel.settings import Settings
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 log = logging.getLogger("drop.api")

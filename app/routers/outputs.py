@@ -19,11 +19,11 @@ from drop_engine.scores import Which
 
 from .. import reads, serialize
 from ..deps import DB, Config, Owner, owned_job
-from ..models import FINAL_STATUSES, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from kernel.models import FINAL_STATUSES, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from ..problems import Problem
 from ..schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, Page
-from ..settings import Settings
-from ..storage import job_dir
+from kernel.settings import Settings
+from kernel.storage import job_dir
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
 SSE_POLL_S = 0.5

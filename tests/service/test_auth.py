@@ -11,7 +11,7 @@ from .conftest import settings_env
 
 
 def test_tokens_are_stored_hashed(app, tokens):
-    from app.models import Token
+    from kernel.models import Token
 
     with app.state.sessions() as s:
         stored = list(s.scalars(select(Token.token_hash)))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from app.ids import new_id
-from app.models import Dataset, Job
+from kernel.ids import new_id
+from kernel.models import Dataset, Job
 from drop_engine.config import build_config
 from worker.runner import run_job
 

@@ -7,9 +7,9 @@ from contextlib import ExitStack
 
 import pytest
 
-from app.db import upgrade
+from kernel.db import upgrade
 from app.joblimits import check
-from app.settings import Settings
+from kernel.settings import Settings
 from drop_engine.config import PRESETS, build_config
 from drop_engine.resources import DataShape
 

@@ -6,8 +6,8 @@ import pytest
 from sqlalchemy import update
 
 from app.auth import get_or_create_owner
-from app.db import make_engine, make_sessionmaker
-from app.models import Job
+from kernel.db import make_engine, make_sessionmaker
+from kernel.models import Job
 from worker.callback import DbCallback
 
 

@@ -5,9 +5,9 @@ import pytest
 from sqlalchemy import text
 
 from app.cli import main
-from app.db import upgrade
+from kernel.db import upgrade
 from app.main import NotMigrated, create_app
-from app.settings import Settings
+from kernel.settings import Settings
 
 
 def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, capsys):
@@ -28,7 +28,7 @@ def _old_database(tmp_path, revision: str):
     """A SQLite database migrated only up to `revision`, holding one owner: where an upgrade finds recorded rows."""
     from alembic import command
 
-    from app.db import alembic_config, make_engine
+    from kernel.db import alembic_config, make_engine
 
     url = f"sqlite:///{tmp_path / 'old.db'}"
     command.upgrade(alembic_config(url), revision)

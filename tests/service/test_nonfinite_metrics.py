@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 from app.auth import get_or_create_owner
-from app.ids import new_id
-from app.models import Job
+from kernel.ids import new_id
+from kernel.models import Job
 from worker.callback import DbCallback
 
 

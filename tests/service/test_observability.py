@@ -85,7 +85,7 @@ def test_metrics_move_during_a_smoke_job(served, hopper_file):
 @pytest.fixture
 def json_logs():
     """JSON log lines, as `drop api` writes them to stderr, captured here; logging is restored afterwards."""
-    from app.logs import configure
+    from kernel.logs import configure
 
     root = logging.getLogger()
     saved = root.handlers[:], root.level

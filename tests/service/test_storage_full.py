@@ -57,7 +57,7 @@ def _files(folder: Path) -> list[Path]:
     ("uploads", ("ro",), "storage_unwritable"),
 ])
 def test_upload_to_full_storage_is_507_and_keeps_nothing(disk, api, tmpfs, hopper_file, folder, options, code):
-    from app.models import Dataset
+    from kernel.models import Dataset
 
     tmpfs(disk.data_dir / folder, *options)
     r = api.upload(hopper_file)

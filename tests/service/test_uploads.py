@@ -164,7 +164,7 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
     test_hostile_uploads.)"""
     import asyncio
 
-    from app.settings import Settings
+    from kernel.settings import Settings
     from app.validate import Invalid, Validator
 
     rows = 16_000_000
