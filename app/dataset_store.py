@@ -13,7 +13,8 @@ from . import quotas
 from .deps import owned_dataset
 from kernel.ids import new_id
 from .metrics import UPLOAD_BYTES, VALIDATION_SECONDS
-from kernel.models import ACTIVE_STATUSES, Dataset, Job
+from kernel.job_state import ACTIVE, status_in
+from kernel.models import Dataset, Job
 from .owner_lock import lock_owner
 from .problems import Problem
 from kernel.settings import Settings
@@ -71,7 +72,7 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     first and the job's creation answers 404."""
     lock_owner(s, owner)
     row = owned_dataset(s, owner, dataset_id)
-    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
+    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, status_in(ACTIVE)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
     s.delete(row)

@@ -11,7 +11,8 @@ from typing import Callable
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from kernel.models import ACTIVE_STATUSES, Dataset, Job
+from kernel.job_state import ACTIVE, status_in
+from kernel.models import Dataset, Job
 from .owner_lock import lock_owner
 from .problems import Problem
 from kernel.settings import Settings
@@ -28,7 +29,7 @@ def check_active_jobs(s: Session, owner_id: str, settings: Settings) -> None:
     """Raise 429 if the owner already has the most unfinished jobs allowed; the lock lasts until the caller commits."""
     lock_owner(s, owner_id)
     active = s.scalar(select(func.count()).select_from(Job)
-                      .where(Job.owner_id == owner_id, Job.status.in_(ACTIVE_STATUSES)))
+                      .where(Job.owner_id == owner_id, status_in(ACTIVE)))
     limit = settings.max_active_jobs_per_owner
     if active >= limit:
         raise _refuse(s, Problem(

@@ -12,7 +12,8 @@ from sqlalchemy.orm import Session, defer, sessionmaker
 
 from . import serialize
 from .deps import owned_job
-from kernel.models import JOB_STATUSES, Job, JobEvent
+from kernel.job_state import JobStatus
+from kernel.models import Job, JobEvent
 from .problems import Problem
 
 
@@ -24,8 +25,8 @@ def job(sessions: sessionmaker[Session], owner: str, job_id: str) -> dict:
 def jobs_page(sessions: sessionmaker[Session], owner: str, status: str | None, after: str | None, limit: int) -> dict:
     q = select(Job).where(Job.owner_id == owner).options(defer(Job.result))
     if status is not None:
-        if status not in JOB_STATUSES:
-            raise Problem(422, "validation_error", f"status: must be one of {', '.join(JOB_STATUSES)}",
+        if status not in set(JobStatus):
+            raise Problem(422, "validation_error", f"status: must be one of {', '.join(JobStatus)}",
                           errors=[{"field": "status", "message": "unknown status"}])
         q = q.where(Job.status == status)
     if after:

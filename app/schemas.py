@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 
 from drop_engine.scores import FINAL_WINDOW
 
-from kernel.models import JOB_STATUSES
+from kernel.job_state import JobStatus
 
 Item = TypeVar("Item")
 
@@ -42,7 +42,7 @@ class JobOut(BaseModel):
     id: str
     object: Literal["job"]
     created_at: str = timestamp()
-    status: Literal[JOB_STATUSES]  # type: ignore[valid-type]
+    status: Literal[tuple(s.value for s in JobStatus)]  # type: ignore[valid-type]
     dataset_id: str | None = Field(description="null once the dataset is deleted")
     algorithm: str
     env: str

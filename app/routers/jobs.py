@@ -8,7 +8,7 @@ import logging
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
-from sqlalchemy import select, update
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -16,7 +16,8 @@ from .. import quotas, reads, serialize
 from ..deps import DB, Config, Owner, JobCursor, owned_dataset, owned_job
 from kernel.ids import new_id
 from ..jobcreate import JobRequest, build
-from kernel.models import JOB_STATUSES, Job, JobEvent, utcnow
+from kernel.job_state import JobStatus, create, mark_sent, transition
+from kernel.models import Job, utcnow
 from ..owner_lock import lock_owner
 from ..problems import Problem
 from ..schemas import JobOut, Page
@@ -55,12 +56,11 @@ def create_job(req: JobRequest, request: Request, response: Response,
     env, config = build(req, dataset, settings)
     quotas.check_active_jobs(s, owner, settings)
     job = Job(id=new_id("job"), owner_id=owner, dataset_id=dataset.id, algorithm=config["algorithm"], env=env,
-              preset=config["preset"], overrides=req.overrides, seed=req.seed, config=config, status="queued",
+              preset=config["preset"], overrides=req.overrides, seed=req.seed, config=config,
               max_attempts=settings.max_attempts, max_runtime_s=req.max_runtime_s or settings.max_runtime_s,
               idempotency_key=idempotency_key, request_hash=digest)
     try:
-        s.add(job)
-        s.add(JobEvent(job_id=job.id, type="status", message="queued", data={"status": "queued"}))
+        create(s, job)
         s.commit()
     except IntegrityError:
         s.rollback()
@@ -74,13 +74,13 @@ def create_job(req: JobRequest, request: Request, response: Response,
     except Exception:  # the reaper re-sends jobs never enqueued, so a broker hiccup delays the job but loses nothing
         log.exception("could not enqueue job %s; the reaper will retry", job.id)
     else:
-        s.execute(update(Job).where(Job.id == job.id).values(enqueued_at=utcnow()))
+        mark_sent(s, job.id, utcnow())
         s.commit()
     return serialize.job(job)
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
-async def list_jobs(request: Request, status: str | None = Query(None, description=" | ".join(JOB_STATUSES)),
+async def list_jobs(request: Request, status: str | None = Query(None, description=" | ".join(JobStatus)),
                     after: JobCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner) -> JSONResponse:
     return JSONResponse(await run_in_threadpool(reads.jobs_page, request.app.state.reader, owner, status, after,
                                                 limit))
@@ -98,21 +98,15 @@ def cancel_job(job_id: str, response: Response, owner: str = Owner, s: Session =
     """Safe to repeat: asking again while it stops answers 202 again, and once it is cancelled 200; nothing changes.
     A job that succeeded or failed cannot be cancelled: 409."""
     owned_job(s, owner, job_id)
-    now = utcnow()
-    done = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued")
-                     .values(status="cancelled", finished_at=now)).rowcount
-    if done:
-        s.add(JobEvent(job_id=job_id, type="status", message="cancelled before it started",
-                       data={"status": "cancelled"}))
-    elif s.execute(update(Job).where(Job.id == job_id, Job.status == "running")
-                   .values(status="cancelling")).rowcount:
-        s.add(JobEvent(job_id=job_id, type="status", message="cancellation requested",
-                       data={"status": "cancelling"}))
+    done = transition(s, job_id, JobStatus.CANCELLED, source=JobStatus.QUEUED, values={"finished_at": utcnow()},
+                      message="cancelled before it started")
+    if not done:
+        transition(s, job_id, JobStatus.CANCELLING, message="cancellation requested")
     s.commit()
     s.expire_all()
     job = owned_job(s, owner, job_id)
-    if job.status in ("succeeded", "failed"):
+    if job.status in (JobStatus.SUCCEEDED, JobStatus.FAILED):
         raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status}); it cannot be cancelled")
-    if job.status == "cancelled" and not done:
+    if job.status == JobStatus.CANCELLED and not done:
         response.status_code = 200
     return serialize.job(job)

@@ -19,7 +19,8 @@ from drop_engine.scores import Which
 
 from .. import reads, serialize
 from ..deps import DB, Config, Owner, owned_job
-from kernel.models import FINAL_STATUSES, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from kernel.job_state import FINAL, JobStatus
+from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from ..problems import Problem
 from ..schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, Page
 from kernel.settings import Settings
@@ -58,7 +59,7 @@ async def _stream(request: Request, job_id: str, after: int, release: Callable[[
                 if items:
                     quiet = 0.0
                     continue
-                if status in FINAL_STATUSES or status is None:
+                if status in FINAL or status is None:
                     yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
                     return
                 if await request.is_disconnected():
@@ -141,7 +142,7 @@ def job_policy(job_id: str,
                format: Literal["torchscript", "state_dict", "onnx", "metadata"] = "torchscript",
                owner: str = Owner, s: Session = DB, settings: Settings = Config):
     job = owned_job(s, owner, job_id)
-    if job.status != "succeeded":
+    if job.status != JobStatus.SUCCEEDED:
         raise Problem(409, "policy_not_ready", f"job {job_id} is {job.status}; a policy exists once it has succeeded")
     name, media = POLICY_FILES[format]
     folder = job_dir(settings, job_id) / "policy"
