@@ -11,9 +11,9 @@ from typing import Iterator
 
 from drop_engine.cli import build_parser as engine_parser
 
-from .procs import SUPERVISOR_ENV, serve_worker
+from .serving.procs import SUPERVISOR_ENV, serve_worker
 
-MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.observability.metrics reads it: set here before it is imported
 GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
 WORKER_APP = "worker.tasks:celery"  # named, as uvicorn's app is: the API's package does not import the worker's
 
@@ -64,7 +64,7 @@ def _with_sessions(run) -> int:
 
 
 def cmd_token_create(args: argparse.Namespace) -> int:
-    from .auth import create_token
+    from .core.auth import create_token
 
     def run(sessions) -> int:
         print(create_token(sessions, args.name))
@@ -74,8 +74,8 @@ def cmd_token_create(args: argparse.Namespace) -> int:
 
 
 def cmd_token_list(args: argparse.Namespace) -> int:
-    from .auth import list_tokens
-    from .serialize import iso
+    from .core.auth import list_tokens
+    from .core.pages import iso
 
     def run(sessions) -> int:
         rows = list_tokens(sessions, args.owner)
@@ -88,8 +88,8 @@ def cmd_token_list(args: argparse.Namespace) -> int:
 
 
 def cmd_token_revoke(args: argparse.Namespace) -> int:
-    from .auth import TokenNotFound, revoke_token
-    from .serialize import iso
+    from .core.auth import TokenNotFound, revoke_token
+    from .core.pages import iso
 
     def run(sessions) -> int:
         try:
@@ -113,7 +113,7 @@ def default_api_workers() -> int:
 
 @contextmanager
 def _metrics_dir(workers: int) -> Iterator[None]:
-    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see app/metrics.py): a
+    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see app/observability/metrics.py): a
     fresh folder for this run unless the operator named one. Set before any process imports prometheus_client."""
     if workers == 1 or os.environ.get(MULTIPROC_ENV):
         yield
@@ -129,7 +129,7 @@ def _metrics_dir(workers: int) -> Iterator[None]:
 
 @contextmanager
 def _supervising(workers: int) -> Iterator[None]:
-    """Worker processes learn their supervisor's pid, to die with it (app/procs.py)."""
+    """Worker processes learn their supervisor's pid, to die with it (app/serving/procs.py)."""
     if workers == 1:
         yield
         return
@@ -186,7 +186,7 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Embedded single-machine mode: migrate, then serve the API in this process and one worker in a child, stopped
-    together by SIGTERM, SIGINT or SIGHUP (app/embedded.py)."""
+    together by SIGTERM, SIGINT or SIGHUP (app/serving/embedded.py)."""
     if not args.auth:
         os.environ["DROP_AUTH_DISABLED"] = "true"
     os.environ.setdefault("DROP_LOG_FORMAT", "console")  # a person reads it; DROP_LOG_FORMAT=json for a collector
@@ -198,7 +198,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
           f"API on http://{args.host}:{args.port}", flush=True)
     import uvicorn
 
-    from .embedded import serve
+    from .serving.embedded import serve
 
     _configure_logs(settings)
     return serve(uvicorn.Config(**_uvicorn_options(args.host, args.port, 1)))

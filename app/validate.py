@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import ContextManager
 
 from drop_engine.data_rows import DatasetLimits
-
 from kernel.settings import Settings
 from kernel.storage_errors import storage_errno
 

@@ -169,7 +169,7 @@ def app(settings):
 
 @pytest.fixture(scope="session")
 def tokens(app) -> dict[str, str]:
-    from app.auth import create_token
+    from app.core.auth import create_token
 
     return {name: create_token(app.state.sessions, name) for name in ("alice", "bob")}
 

@@ -8,10 +8,9 @@ import random
 
 import httpx
 import pytest
-
 from sqlalchemy import func, select
 
-from app.auth import hash_token
+from app.core.auth import hash_token
 from kernel.db import upgrade
 from kernel.ids import new_id
 from kernel.models import Dataset, Job, Token

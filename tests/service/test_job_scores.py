@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from sqlalchemy import update
 
-from app.auth import get_or_create_owner
+from app.core.auth import get_or_create_owner
 from kernel.db import make_engine, make_sessionmaker
 from kernel.models import Job
 from worker.callback import DbCallback

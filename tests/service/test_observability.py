@@ -26,7 +26,7 @@ def sample(text: str, name: str, **labels: str) -> float:
 @pytest.fixture
 def served(own_settings, tmp_path):
     """An app and a worker of the test's own, on a database of its own, so every count is the test's."""
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     app = create_app(own_settings)

@@ -51,7 +51,7 @@ def api_process(settings, tmp_path: Path, nofile: int | None = None, **overrides
 
 @pytest.fixture(scope="module")
 def tokens(settings) -> dict[str, str]:
-    from app.auth import create_token
+    from app.core.auth import create_token
     from kernel.db import make_engine, make_sessionmaker
 
     engine = make_engine(settings.database_url)

@@ -40,7 +40,7 @@ def disk(own_settings, tmp_path):
 def api(disk):
     from fastapi.testclient import TestClient
 
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     with TestClient(create_app(disk), raise_server_exceptions=False) as c:

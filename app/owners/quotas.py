@@ -1,6 +1,6 @@
 """Per-owner quotas: unfinished jobs (429) and stored dataset bytes (413).
 
-Each check counts under the owner's lock (app/owner_lock.py), so two requests of one owner at once cannot both count
+Each check counts under the owner's lock (app/owners/lock.py), so two requests of one owner at once cannot both count
 the same total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock. A
 dataset counts at the larger of its file size and its decoded size (`Dataset.charged_bytes`).
 """
@@ -13,9 +13,10 @@ from sqlalchemy.orm import Session
 
 from kernel.job_state import ACTIVE, status_in
 from kernel.models import Dataset, Job
-from .owner_lock import lock_owner
-from .problems import Problem
 from kernel.settings import Settings
+
+from ..core.problems import Problem
+from .lock import lock_owner
 
 RETRY_AFTER_S = 60  # jobs take minutes; asking again sooner is pointless
 

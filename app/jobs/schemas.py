@@ -1,36 +1,17 @@
-"""The shapes of successful responses, so the OpenAPI schema tells clients (and the schema fuzz test) exactly what comes
-back. `app/serialize.py` builds these objects from rows; FastAPI checks them against these models on the way out."""
+"""The job objects the API answers with: their response models, so the OpenAPI schema tells clients (and the schema
+fuzz test) exactly what comes back, and the dicts rows become. Where a route has FastAPI check its answer, it checks
+these dicts against these models on the way out."""
 from __future__ import annotations
 
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
 from drop_engine.scores import FINAL_WINDOW
-
 from kernel.job_state import JobStatus
+from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 
-Item = TypeVar("Item")
-
-
-def timestamp() -> Any:
-    return Field(json_schema_extra={"format": "date-time"}, description="RFC 3339, UTC")
-
-
-class DatasetOut(BaseModel):
-    id: str
-    object: Literal["dataset"]
-    created_at: str = timestamp()
-    name: str
-    format: str = Field(description="hdf5 | npz | minari")
-    size_bytes: int
-    decoded_bytes: int = Field(description="rows x bytes of a float32 transition: what it takes once loaded; it counts "
-                                           "toward the storage quota when larger than size_bytes")
-    sha256: str
-    env: str | None = Field(description="the env the dataset's dimensions match, if exactly one")
-    obs_dim: int
-    act_dim: int
-    report: dict[str, Any] = Field(description="what validation found: sizes, episodes, returns, warnings")
+from ..core.pages import iso, timestamp
 
 
 class JobError(BaseModel):
@@ -102,12 +83,35 @@ class CheckpointOut(BaseModel):
     size_bytes: int
 
 
-class Page(BaseModel, Generic[Item]):
-    object: Literal["list"]
-    data: list[Item]
-    has_more: bool
-    next_after: str | int | None = Field(description="pass as `after` for the next page; null on the last")
+def job(row: Job) -> dict:
+    return {
+        "id": row.id, "object": "job", "created_at": iso(row.created_at), "status": row.status,
+        "dataset_id": row.dataset_id, "algorithm": row.algorithm, "env": row.env, "preset": row.preset,
+        "overrides": row.overrides, "seed": row.seed, "progress": row.progress, "latest_metrics": row.latest_metrics,
+        "best_score": row.best_score, "last_score": row.last_score, "best_epoch": row.best_epoch,
+        "final_score": row.final_score,
+        "error": {"code": row.error_code, "message": row.error_message} if row.error_code else None,
+        "attempts": row.attempts, "max_attempts": row.max_attempts, "max_runtime_s": row.max_runtime_s,
+        "started_at": iso(row.started_at), "finished_at": iso(row.finished_at), "heartbeat_at": iso(row.heartbeat_at),
+        "config": row.config,
+    }
 
 
-class Status(BaseModel):
-    status: str
+def event(row: JobEvent) -> dict:
+    return {"id": row.id, "object": "job.event", "created_at": iso(row.created_at), "type": row.type,
+            "message": row.message, "data": row.data}
+
+
+def metric(row: JobMetric) -> dict:
+    return {"id": row.id, "object": "job.metric", "created_at": iso(row.created_at), "name": row.name,
+            "step": row.step, "value": row.value}
+
+
+def evaluation(row: JobEvaluation) -> dict:
+    return {"id": row.id, "object": "job.evaluation", "created_at": iso(row.created_at), "epoch": row.epoch,
+            "mean_return": row.mean_return, "normalized_score": row.normalized_score}
+
+
+def checkpoint(row: JobCheckpoint) -> dict:
+    return {"id": row.id, "object": "job.checkpoint", "created_at": iso(row.created_at), "epoch": row.epoch,
+            "step": row.step, "size_bytes": row.size_bytes}

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.ids import new_id
 from kernel.models import Owner, Token, utcnow
+
 from .problems import Problem
 
 LOCAL_OWNER = "local"
