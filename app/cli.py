@@ -113,8 +113,9 @@ def default_api_workers() -> int:
 
 @contextmanager
 def _metrics_dir(workers: int) -> Iterator[None]:
-    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see app/observability/metrics.py): a
-    fresh folder for this run unless the operator named one. Set before any process imports prometheus_client."""
+    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see
+    app/observability/metrics.py): a fresh folder for this run unless the operator named one. Set before any process
+    imports prometheus_client."""
     if workers == 1 or os.environ.get(MULTIPROC_ENV):
         yield
         return

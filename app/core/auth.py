@@ -56,8 +56,8 @@ def list_tokens(factory: sessionmaker[Session], owner: str | None = None) -> lis
 def revoke_token(factory: sessionmaker[Session], ref: str) -> Token:
     """Revoke the token with id `ref`, the one token whose id starts with `ref`, or the token `ref` itself.
 
-    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/token_cache.py), so a revoked
-    token is refused from that long after at the latest.
+    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/core/token_cache.py), so a
+    revoked token is refused from that long after at the latest.
     """
     if not ref:
         raise TokenNotFound("give a token id, the start of one, or the token itself")
