@@ -2,7 +2,8 @@
 reached the broker or was lost there (Redis restarted without persistence keeps no messages).
 
 Every change is a conditional UPDATE on the row as it was seen (kernel.job_state.transition), so several reapers (one
-per worker) never collide: of several reapers, one takes each re-send. A job sent twice still runs once, because claiming it is conditional too.
+per worker) never collide: of several reapers, one takes each re-send. A job sent twice still runs once, because
+claiming it is conditional too.
 """
 from __future__ import annotations
 
