@@ -10,6 +10,7 @@ WORKDIR /srv/drop
 
 COPY pyproject.toml constraints.txt README.md ./
 COPY drop_engine ./drop_engine
+COPY kernel ./kernel
 COPY app ./app
 COPY worker ./worker
 COPY migrations ./migrations

@@ -11,21 +11,22 @@ from typing import Iterator
 
 from drop_engine.cli import build_parser as engine_parser
 
-from .procs import SUPERVISOR_ENV, serve_worker
+from .serving.procs import SUPERVISOR_ENV, serve_worker
 
-MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.metrics reads it; not imported here, so that it is set first
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # app.observability.metrics reads it: set here before it is imported
 GRACEFUL_S = 5  # open event streams never end by themselves: a stopping API closes them after this
+WORKER_APP = "worker.tasks:celery"  # named, as uvicorn's app is: the API's package does not import the worker's
 
 
 def _settings():
-    from .settings import get_settings
+    from kernel.settings import get_settings
 
     get_settings.cache_clear()
     return get_settings()
 
 
 def _check_migrated(settings) -> bool:
-    from .db import make_engine, schema_problem
+    from kernel.db import make_engine, schema_problem
 
     engine = make_engine(settings.sqlalchemy_url)
     try:
@@ -39,7 +40,7 @@ def _check_migrated(settings) -> bool:
 
 
 def cmd_db_upgrade(args: argparse.Namespace) -> int:
-    from .db import upgrade
+    from kernel.db import upgrade
 
     settings = _settings()
     settings.ensure_dirs()
@@ -50,7 +51,7 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 def _with_sessions(run) -> int:
     """Run `run(sessionmaker)` against the configured database, once it is at the newest migration."""
-    from .db import make_engine, make_sessionmaker
+    from kernel.db import make_engine, make_sessionmaker
 
     settings = _settings()
     if not _check_migrated(settings):
@@ -63,7 +64,7 @@ def _with_sessions(run) -> int:
 
 
 def cmd_token_create(args: argparse.Namespace) -> int:
-    from .auth import create_token
+    from .core.auth import create_token
 
     def run(sessions) -> int:
         print(create_token(sessions, args.name))
@@ -73,8 +74,8 @@ def cmd_token_create(args: argparse.Namespace) -> int:
 
 
 def cmd_token_list(args: argparse.Namespace) -> int:
-    from .auth import list_tokens
-    from .serialize import iso
+    from .core.auth import list_tokens
+    from .core.pages import iso
 
     def run(sessions) -> int:
         rows = list_tokens(sessions, args.owner)
@@ -87,8 +88,8 @@ def cmd_token_list(args: argparse.Namespace) -> int:
 
 
 def cmd_token_revoke(args: argparse.Namespace) -> int:
-    from .auth import TokenNotFound, revoke_token
-    from .serialize import iso
+    from .core.auth import TokenNotFound, revoke_token
+    from .core.pages import iso
 
     def run(sessions) -> int:
         try:
@@ -112,8 +113,9 @@ def default_api_workers() -> int:
 
 @contextmanager
 def _metrics_dir(workers: int) -> Iterator[None]:
-    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see app/metrics.py): a
-    fresh folder for this run unless the operator named one. Set before any process imports prometheus_client."""
+    """Several API processes share their metrics through files in PROMETHEUS_MULTIPROC_DIR (see
+    app/observability/metrics.py): a fresh folder for this run unless the operator named one. Set before any process
+    imports prometheus_client."""
     if workers == 1 or os.environ.get(MULTIPROC_ENV):
         yield
         return
@@ -128,7 +130,7 @@ def _metrics_dir(workers: int) -> Iterator[None]:
 
 @contextmanager
 def _supervising(workers: int) -> Iterator[None]:
-    """Worker processes learn their supervisor's pid, to die with it (app/procs.py)."""
+    """Worker processes learn their supervisor's pid, to die with it (app/serving/procs.py)."""
     if workers == 1:
         yield
         return
@@ -156,7 +158,7 @@ def _run_api(settings, host: str, port: int, workers: int) -> int:
 
 
 def _configure_logs(settings, level: str | None = None) -> None:
-    from .logs import configure
+    from kernel.logs import configure
 
     configure(settings.log_format, level or settings.log_level)
 
@@ -174,18 +176,18 @@ def cmd_worker(args: argparse.Namespace) -> int:
     settings.ensure_dirs()
     if not _check_migrated(settings):
         return 2
-    from worker.tasks import celery
+    from celery.bin.celery import celery
 
     concurrency = args.concurrency or settings.worker_concurrency
-    celery.worker_main(["worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
-                        "--without-gossip", "--without-mingle", "--without-heartbeat",
-                        "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel])
+    celery.main(args=["-A", WORKER_APP, "worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
+                      "--without-gossip", "--without-mingle", "--without-heartbeat",
+                      "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel], standalone_mode=False)
     return 0
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Embedded single-machine mode: migrate, then serve the API in this process and one worker in a child, stopped
-    together by SIGTERM, SIGINT or SIGHUP (app/embedded.py)."""
+    together by SIGTERM, SIGINT or SIGHUP (app/serving/embedded.py)."""
     if not args.auth:
         os.environ["DROP_AUTH_DISABLED"] = "true"
     os.environ.setdefault("DROP_LOG_FORMAT", "console")  # a person reads it; DROP_LOG_FORMAT=json for a collector
@@ -197,7 +199,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
           f"API on http://{args.host}:{args.port}", flush=True)
     import uvicorn
 
-    from .embedded import serve
+    from .serving.embedded import serve
 
     _configure_logs(settings)
     return serve(uvicorn.Config(**_uvicorn_options(args.host, args.port, 1)))

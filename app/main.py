@@ -8,19 +8,24 @@ from typing import AsyncIterator
 
 from fastapi import FastAPI
 
-from . import problems
-from .body_timeout import IdleBody
-from .db import make_engine, make_reader, make_sessionmaker, schema_problem
-from .event_bus import EventWaker, listen
-from .job_metrics import JobMetrics
-from .limits import BodyLimit
-from .logs import configure
-from .observe import ObserveRequests
-from .procs import supervised
-from .routers import datasets, health, jobs, metrics, outputs
-from .settings import Settings, get_settings
-from .slots import stream_slots, upload_slots
-from .token_cache import TokenCache
+from kernel.db import make_engine, make_reader, make_sessionmaker, schema_problem
+from kernel.logs import configure
+from kernel.queue import enqueue, make_celery
+from kernel.settings import Settings, get_settings
+
+from .core import problems
+from .core.body_limit import BodyLimit
+from .core.body_timeout import IdleBody
+from .core.slots import stream_slots, upload_slots
+from .core.token_cache import TokenCache
+from .datasets import routes as datasets
+from .jobs import outputs
+from .jobs import routes as jobs
+from .jobs.event_bus import EventWaker, listen
+from .jobs.metrics import JobMetrics
+from .observability import health
+from .observability.observe import ObserveRequests
+from .serving.procs import supervised
 from .validate import Validator
 
 log = logging.getLogger("drop.api")
@@ -32,8 +37,6 @@ class NotMigrated(RuntimeError):
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    from worker.celery_app import enqueue, make_celery
-
     settings = settings or get_settings()
     settings.ensure_dirs()
     engine = make_engine(settings.sqlalchemy_url)
@@ -61,7 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     problems.install(app)
     build = app.build_middleware_stack  # outside Starlette's error middleware: 500s get an id, and their log lines too
     app.build_middleware_stack = lambda: ObserveRequests(build())
-    for router in (health.router, metrics.router, datasets.router, jobs.router, outputs.router):
+    for router in (health.router, datasets.router, jobs.router, outputs.router):
         app.include_router(router)
     return app
 
@@ -76,7 +79,7 @@ def served_app() -> FastAPI:
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """On PostgreSQL, listen for new job events while the app serves (see event_bus)."""
+    """On PostgreSQL, listen for new job events while the app serves (see app/jobs/event_bus.py)."""
     engine = app.state.engine
     if engine.dialect.name != "postgresql":
         yield

@@ -26,9 +26,8 @@ from pathlib import Path
 from typing import ContextManager
 
 from drop_engine.data_rows import DatasetLimits
-
-from .settings import Settings
-from .storage_errors import storage_errno
+from kernel.settings import Settings
+from kernel.storage_errors import storage_errno
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 ZIP_MAGIC = b"PK\x03\x04"

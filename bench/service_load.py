@@ -44,7 +44,7 @@ import redis
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the service tests' helpers: throwaway database, worker process, settings as env
 
-from app.settings import Settings  # noqa: E402
+from kernel.settings import Settings  # noqa: E402
 from tests.service.conftest import (REDIS_URL, database, free_port, kill_group, settings_env,  # noqa: E402
                                     start_worker, wait_for_line, wait_ready)
 

@@ -27,7 +27,7 @@ class _Strict(BaseModel):
 
 
 # Upper bounds: generous enough for a power user of the CLI, finite so that no value asks for the impossible. The
-# service refuses jobs over its own, tighter limits on the whole run (app/joblimits.py).
+# service refuses jobs over its own, tighter limits on the whole run (app/jobs/limits.py).
 Width = Annotated[int, Field(ge=1, le=4096)]
 Hidden = Annotated[tuple[Width, ...], Field(max_length=8)]
 BatchSize = Annotated[int, Field(ge=1, le=65_536)]

@@ -11,9 +11,10 @@ from typing import Callable, Mapping
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from drop_engine.callbacks import Callback
 from drop_engine.scores import summarize
+from kernel.job_state import JobStatus, still_attempt
+from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 
 PROGRESS_EVERY_S = 1.0
 
@@ -30,7 +31,7 @@ class DbCallback(Callback):
         self.stop_reason: str | None = None  # "cancelled", "lost" or "shutdown"
 
     def _mine(self):
-        return (Job.id == self.job_id) & (Job.attempts == self.attempt) & Job.status.in_(("running", "cancelling"))
+        return (Job.id == self.job_id) & still_attempt(self.attempt)
 
     def _score_columns(self, s: Session, *new: tuple[int, float]) -> dict:
         """The job's last, best, best_epoch and final score columns from its recorded evaluations plus `new` ones,
@@ -120,9 +121,9 @@ class DbCallback(Callback):
             self.stop_reason = "shutdown"
             return True
         with self.sessions() as s:
-            row = s.execute(select(Job.status, Job.attempts).where(Job.id == self.job_id)).one_or_none()
-        if row is None or row.attempts != self.attempt or row.status not in ("running", "cancelling"):
+            status = s.scalar(select(Job.status).where(self._mine()))
+        if status is None:
             self.stop_reason = "lost"
-        elif row.status == "cancelling":
+        elif status == JobStatus.CANCELLING:
             self.stop_reason = "cancelled"
         return self.stop_reason is not None

@@ -8,7 +8,7 @@ import sqlite3
 import psycopg
 from sqlalchemy.exc import SQLAlchemyError
 
-from app.exc_chain import causes
+from kernel.exc_chain import causes
 
 DATABASE_ERRORS = (SQLAlchemyError, sqlite3.Error, psycopg.Error)
 

@@ -1,8 +1,9 @@
 """Find jobs whose worker died (stale heartbeat) and re-queue or fail them; re-send queued jobs whose message never
 reached the broker or was lost there (Redis restarted without persistence keeps no messages).
 
-Every change is a conditional UPDATE on the row as it was seen, so several reapers (one per worker) never collide:
-of several reapers, one takes each re-send. A job sent twice still runs once, because claiming it is conditional too.
+Every change is a conditional UPDATE on the row as it was seen (kernel.job_state.transition), so several reapers (one
+per worker) never collide: of several reapers, one takes each re-send. A job sent twice still runs once, because
+claiming it is conditional too.
 """
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import logging
 from datetime import datetime, timedelta
 from typing import Callable
 
-from sqlalchemy import select, update
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.models import Job, JobEvent, utcnow
-from app.settings import Settings
+from kernel.job_state import ATTEMPT, JobStatus, mark_sent, status_in, transition
+from kernel.models import Job, utcnow
+from kernel.settings import Settings
 
 log = logging.getLogger("drop.reaper")
 Enqueue = Callable[[str, int], None]
@@ -34,7 +36,7 @@ def reap(sessions: sessionmaker[Session], settings: Settings, enqueue: Enqueue,
     if idle_since is not None and idle_since <= now - timedelta(seconds=settings.redeliver_after_s):
         due = due | (Job.enqueued_at < idle_since)
     with sessions() as s:
-        rows = s.execute(select(Job.id, Job.max_runtime_s).where(Job.status == "queued", due)).all()
+        rows = s.execute(select(Job.id, Job.max_runtime_s).where(Job.status == JobStatus.QUEUED, due)).all()
     return [row.id for row in rows if _resend(sessions, enqueue, row.id, row.max_runtime_s, due)]
 
 
@@ -43,36 +45,34 @@ def _expire_dead(sessions: sessionmaker[Session], settings: Settings, now: datet
     stale = now - timedelta(seconds=settings.stale_after_s)
     with sessions() as s:
         dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts)
-                         .where(Job.status.in_(("running", "cancelling")), Job.heartbeat_at < stale)).all()
+                         .where(status_in(ATTEMPT), Job.heartbeat_at < stale)).all()
     for row in dead:
-        seen = (Job.id == row.id) & (Job.attempts == row.attempts) & (Job.status == row.status)
-        if row.status == "cancelling":
-            values, message = {"status": "cancelled", "finished_at": now}, "cancelled (its worker stopped responding)"
+        if row.status == JobStatus.CANCELLING:
+            to, values, message = JobStatus.CANCELLED, {"finished_at": now}, "cancelled (its worker stopped responding)"
         elif row.attempts >= row.max_attempts:
             reason = (f"attempts exhausted: the worker stopped responding on all {row.attempts} attempts "
                       f"(max_attempts={row.max_attempts})")
-            values = {"status": "failed", "finished_at": now, "error_code": "worker_lost", "error_message": reason}
-            message = f"failed: {reason}"
+            to, message = JobStatus.FAILED, f"failed: {reason}"
+            values = {"finished_at": now, "error_code": "worker_lost", "error_message": reason}
         else:
-            values = {"status": "queued", "worker": None, "enqueued_at": None}
+            to, values = JobStatus.QUEUED, {"worker": None, "enqueued_at": None}
             message = f"re-queued: the worker of attempt {row.attempts} stopped responding; will resume from checkpoint"
-        with sessions.begin() as s:
-            if s.execute(update(Job).where(seen).values(**values)).rowcount:
-                s.add(JobEvent(job_id=row.id, type="status", message=message, data={"status": values["status"]}))
+        with sessions.begin() as s:  # only the row as it was seen: the same status, still the same attempt
+            transition(s, row.id, to, source=JobStatus(row.status), attempt=row.attempts, values=values,
+                       message=message)
 
 
 def _resend(sessions: sessionmaker[Session], enqueue: Enqueue, job_id: str, runtime: int, due) -> bool:
     """Take the re-send (the UPDATE repeats the query's condition, so one reaper wins), then send; on failure mark the
     job unsent, for the next pass."""
     with sessions.begin() as s:
-        if not s.execute(update(Job).where(Job.id == job_id, Job.status == "queued", due)
-                         .values(enqueued_at=utcnow())).rowcount:
+        if not mark_sent(s, job_id, utcnow(), where=due):
             return False
     try:
         enqueue(job_id, runtime)
     except Exception:
         log.exception("could not enqueue %s", job_id)
         with sessions.begin() as s:
-            s.execute(update(Job).where(Job.id == job_id, Job.status == "queued").values(enqueued_at=None))
+            mark_sent(s, job_id, None)
         return False
     return True

@@ -1,7 +1,8 @@
 """Run one job: claim it, train with the database callback while heartbeating, record how it ended.
 
-The claim is a single conditional UPDATE (queued -> running, attempts + 1) in one transaction, which is atomic on
+The claim is a single conditional UPDATE (queued -> running, on the attempt count it read), which is atomic on
 PostgreSQL and SQLite alike: of two deliveries of the same message, exactly one wins, and the loser does nothing.
+Every status change goes through kernel.job_state.transition, fenced by this worker's attempt.
 """
 from __future__ import annotations
 
@@ -18,12 +19,13 @@ from typing import Callable
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.exc_chain import causes
-from app.logs import bound
-from app.models import Dataset, Job, JobEvent, utcnow
-from app.settings import Settings
-from app.storage import job_dir, model_cache_dir
-from app.storage_errors import storage_failure
+from kernel.exc_chain import causes
+from kernel.job_state import JobStatus, mark_sent, still_attempt, transition
+from kernel.logs import bound
+from kernel.models import Dataset, Job, JobEvent, utcnow
+from kernel.settings import Settings
+from kernel.storage import job_dir, model_cache_dir
+from kernel.storage_errors import storage_failure
 
 from .callback import DbCallback
 from .failures import unexpected_failure
@@ -37,20 +39,18 @@ def worker_name() -> str:
 
 def claim(sessions: sessionmaker[Session], job_id: str, name: str) -> int | None:
     """The attempt number if this worker now owns the job, else None."""
-    now = utcnow()
-    with sessions.begin() as s:
-        won = s.execute(update(Job).where(Job.id == job_id, Job.status == "queued", Job.attempts < Job.max_attempts)
-                        .values(status="running", attempts=Job.attempts + 1, worker=name, heartbeat_at=now,
-                                started_at=now)).rowcount
-        if not won:
-            return None
-        attempt, created_at, waited = s.execute(select(Job.attempts, Job.created_at, Job.queue_wait_s)
-                                                .where(Job.id == job_id)).one()
-        if waited is None:  # the first claim ends the job's wait in the queue
-            s.execute(update(Job).where(Job.id == job_id).values(queue_wait_s=_seconds(created_at, now)))
-        s.add(JobEvent(job_id=job_id, type="status", message=f"running (attempt {attempt} on {name})",
-                       data={"status": "running", "attempt": attempt, "worker": name}))
-    return attempt
+    with sessions() as s:
+        seen = s.execute(select(Job.attempts, Job.max_attempts, Job.created_at).where(Job.id == job_id)).one_or_none()
+    if seen is None or seen.attempts >= seen.max_attempts:
+        return None
+    attempt, now = seen.attempts + 1, utcnow()
+    with sessions.begin() as s:  # the UPDATE first: a SQLite transaction that read first may not then write
+        won = transition(s, job_id, JobStatus.RUNNING, where=Job.attempts == seen.attempts,
+                         values={"attempts": attempt, "worker": name, "heartbeat_at": now, "started_at": now,
+                                 # the first claim ends the job's wait in the queue
+                                 "queue_wait_s": func.coalesce(Job.queue_wait_s, _seconds(seen.created_at, now))},
+                         message=f"running (attempt {attempt} on {name})", data={"attempt": attempt, "worker": name})
+    return attempt if won else None
 
 
 def _seconds(start: datetime | None, end: datetime) -> float:
@@ -62,22 +62,20 @@ def _ran(started_at: datetime | None, now: datetime):
     return func.coalesce(Job.run_s, 0.0) + _seconds(started_at, now)
 
 
-def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: str, message: str, *,
+def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: JobStatus, message: str, *,
            error: tuple[str, str] | None = None, result: dict | None = None, trace: str | None = None) -> bool:
     """Record the end of this attempt, unless the job is no longer ours."""
     now = utcnow()
-    values = {"status": status, "finished_at": now, "heartbeat_at": now}
+    values = {"finished_at": now, "heartbeat_at": now}
     if error:
         values.update(error_code=error[0], error_message=error[1])
     if result is not None:
         values.update(result=result)
     with sessions.begin() as s:
-        mine = (Job.id == job_id) & (Job.attempts == attempt) & Job.status.in_(("running", "cancelling"))
-        started_at = s.scalar(select(Job.started_at).where(mine))
-        if not s.execute(update(Job).where(mine).values(**values, run_s=_ran(started_at, now))).rowcount:
+        started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
+        if not transition(s, job_id, status, attempt=attempt, values={**values, "run_s": _ran(started_at, now)},
+                          message=message, data={"error": {"code": error[0], "message": error[1]}} if error else None):
             return False
-        data = {"status": status, **({"error": {"code": error[0], "message": error[1]}} if error else {})}
-        s.add(JobEvent(job_id=job_id, type="status", message=message, data=data))
         if trace:
             s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
     return True
@@ -95,8 +93,7 @@ class Heartbeat(threading.Thread):
         while not self.stopped.wait(self.every_s):
             try:
                 with self.sessions.begin() as s:
-                    s.execute(update(Job).where(Job.id == self.job_id, Job.attempts == self.attempt,
-                                                Job.status.in_(("running", "cancelling")))
+                    s.execute(update(Job).where(Job.id == self.job_id, still_attempt(self.attempt))
                               .values(heartbeat_at=utcnow()))
             except Exception:  # a database blip must not kill the job; the next beat retries
                 log.exception("heartbeat for %s failed", self.job_id)
@@ -106,20 +103,16 @@ class Heartbeat(threading.Thread):
 
 
 def _fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:
-    finish(sessions, job_id, attempt, "failed", f"failed: {message}", error=(code, message), trace=trace)
+    finish(sessions, job_id, attempt, JobStatus.FAILED, f"failed: {message}", error=(code, message), trace=trace)
 
 
 def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message: str) -> bool:
     """Give the job back (its worker is shutting down); the attempt does not count against max_attempts."""
     with sessions.begin() as s:
-        mine = (Job.id == job_id) & (Job.attempts == attempt) & (Job.status == "running")
-        started_at = s.scalar(select(Job.started_at).where(mine))
-        if not s.execute(update(Job).where(mine).values(status="queued", worker=None, enqueued_at=None,
-                                                        attempts=Job.attempts - 1,
-                                                        run_s=_ran(started_at, utcnow()))).rowcount:
-            return False
-        s.add(JobEvent(job_id=job_id, type="status", message=message, data={"status": "queued"}))
-    return True
+        started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
+        return transition(s, job_id, JobStatus.QUEUED, attempt=attempt, message=message,
+                          values={"worker": None, "enqueued_at": None, "attempts": Job.attempts - 1,
+                                  "run_s": _ran(started_at, utcnow())})
 
 
 def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int) -> None:
@@ -141,7 +134,7 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int
 def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:
     """A shutting-down worker got the message: leave the job queued and mark it unsent, for a reaper to send again."""
     with sessions.begin() as s:
-        s.execute(update(Job).where(Job.id == job_id, Job.status == "queued").values(enqueued_at=None))
+        mark_sent(s, job_id, None)
 
 
 def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
@@ -215,12 +208,12 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         return "failed"
     if result.status == "completed":
         _add_onnx(sessions, job_id, result, dataset.obs_dim)
-        finish(sessions, job_id, attempt, "succeeded", "succeeded", result=result.to_dict())
+        finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded", result=result.to_dict())
         return "succeeded"
     # A run stopped while fitting its dynamics model has written no checkpoint yet: say so, not that it wrote one.
     checkpointed = result.checkpoint is not None
     if callback.stop_reason == "cancelled":
-        finish(sessions, job_id, attempt, "cancelled", "cancelled at a step boundary; final checkpoint written"
+        finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled at a step boundary; final checkpoint written"
                if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
                result=result.to_dict())
         return "cancelled"
@@ -230,7 +223,7 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         then = "will resume from checkpoint" if checkpointed else "will start over (stopped before its first checkpoint)"
         if requeue(sessions, job_id, attempt, f"re-queued: its worker is shutting down; {then}"):
             return "requeued"
-        if finish(sessions, job_id, attempt, "cancelled", "cancelled while its worker was shutting down",
+        if finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled while its worker was shutting down",
                   result=result.to_dict()):
             return "cancelled"
     log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)

@@ -9,10 +9,9 @@ from pathlib import Path
 
 from celery.signals import setup_logging, worker_ready, worker_shutdown, worker_shutting_down
 
-from app.db import make_engine, make_sessionmaker
-from app.settings import get_settings
-
-from .celery_app import TASK_RUN_JOB, enqueue, make_celery
+from kernel.db import make_engine, make_sessionmaker
+from kernel.queue import TASK_RUN_JOB, enqueue, make_celery
+from kernel.settings import get_settings
 
 log = logging.getLogger("drop.worker")
 settings = get_settings()
@@ -45,7 +44,7 @@ def run_job(job_id: str) -> str:
 def _reaper_loop(slots: int) -> None:
     from celery.worker import state
 
-    from app.models import utcnow
+    from kernel.models import utcnow
 
     from .reaper import reap
 
@@ -66,7 +65,7 @@ def _reaper_loop(slots: int) -> None:
 
 @setup_logging.connect
 def _keep_our_logging(**_) -> None:
-    """`drop worker` set up logging (app.logs) before Celery started; a receiver here stops Celery replacing it."""
+    """`drop worker` set up logging (kernel/logs.py) before Celery started; a receiver here stops Celery replacing it."""
 
 
 @worker_ready.connect

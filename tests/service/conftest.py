@@ -18,7 +18,7 @@ import psycopg
 import pytest
 import redis
 
-from app.settings import Settings
+from kernel.settings import Settings
 
 PG_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"
 REDIS_URL = "redis://127.0.0.1:6379/0"
@@ -66,7 +66,7 @@ def pg_url():
 @pytest.fixture
 def own_settings(settings):
     """Settings on a migrated database and a queue of the test's own: its workers' reapers see only its jobs."""
-    from app.db import upgrade
+    from kernel.db import upgrade
 
     with database() as url:
         upgrade(url)
@@ -75,7 +75,7 @@ def own_settings(settings):
 
 @pytest.fixture(scope="session")
 def settings(tmp_path_factory, pg_url) -> Settings:
-    from app.db import upgrade
+    from kernel.db import upgrade
 
     queue = f"drop-test-{secrets.token_hex(4)}"
     s = Settings(data_dir=tmp_path_factory.mktemp("drop-data"), database_url=pg_url, broker_url=REDIS_URL, queue=queue,
@@ -169,7 +169,7 @@ def app(settings):
 
 @pytest.fixture(scope="session")
 def tokens(app) -> dict[str, str]:
-    from app.auth import create_token
+    from app.core.auth import create_token
 
     return {name: create_token(app.state.sessions, name) for name in ("alice", "bob")}
 

@@ -28,7 +28,7 @@ def private_api(settings, **overrides) -> Iterator[tuple]:
     """(app, TestClient sending the new owner's token); `overrides` change settings, e.g. quotas."""
     from fastapi.testclient import TestClient
 
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     queue = f"drop-private-{secrets.token_hex(4)}"

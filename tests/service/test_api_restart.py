@@ -44,8 +44,8 @@ def _events_after(http: httpx.Client, job_id: str, last_id: int) -> list[int]:
 
 
 def test_jobs_and_clients_survive_an_api_restart(own_settings, hopper_file, tmp_path):
-    from app.auth import create_token
-    from app.db import make_engine, make_sessionmaker
+    from app.core.auth import create_token
+    from kernel.db import make_engine, make_sessionmaker
 
     token = create_token(make_sessionmaker(make_engine(own_settings.database_url)), "alice")
     worker = start_worker(own_settings, tmp_path / "worker.log")

@@ -22,8 +22,8 @@ def children(pid: int) -> list[int]:
 
 
 def test_two_api_processes_share_one_truth(own_settings, tmp_path):
-    from app.auth import create_token, revoke_token
-    from app.db import make_engine, make_sessionmaker
+    from app.core.auth import create_token, revoke_token
+    from kernel.db import make_engine, make_sessionmaker
 
     sessions = make_sessionmaker(make_engine(own_settings.database_url))
     token, doomed = create_token(sessions, "alice"), create_token(sessions, "alice")

@@ -21,7 +21,7 @@ def _wait_running(alice, job_id: str, attempt: int, timeout: float = 60) -> None
 def test_job_fails_after_max_attempts_crashes(own_settings, hopper_file, tmp_path):
     from fastapi.testclient import TestClient
 
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     settings = own_settings.model_copy(update={"max_attempts": 2, "stale_after_s": 3.0, "reap_every_s": 0.5})

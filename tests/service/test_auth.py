@@ -11,7 +11,7 @@ from .conftest import settings_env
 
 
 def test_tokens_are_stored_hashed(app, tokens):
-    from app.models import Token
+    from kernel.models import Token
 
     with app.state.sessions() as s:
         stored = list(s.scalars(select(Token.token_hash)))
@@ -42,7 +42,7 @@ def test_owner_cannot_see_another_owners_objects(alice, bob, hopper_file):
 @pytest.fixture
 def carol(app):
     """A fresh owner with two tokens, so one can be revoked while the other still works."""
-    from app.auth import create_token
+    from app.core.auth import create_token
 
     name = f"carol-{secrets.token_hex(4)}"
     return name, create_token(app.state.sessions, name), create_token(app.state.sessions, name)
@@ -138,7 +138,7 @@ def test_revoke_needs_exactly_one_match(settings, carol, monkeypatch, capsys):
 
 
 def test_token_lookups_are_cached_briefly():
-    from app.token_cache import TokenCache
+    from app.core.token_cache import TokenCache
 
     now = [100.0]  # a clock of the test's own: a descheduled test process cannot expire an entry early
     cache = TokenCache(ttl_s=5, clock=lambda: now[0])

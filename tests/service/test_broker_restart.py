@@ -51,7 +51,7 @@ def own_redis(tmp_path):
 def test_jobs_survive_a_redis_restart(own_settings, own_redis, hopper_file, tmp_path):
     from fastapi.testclient import TestClient
 
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     settings = own_settings.model_copy(update={"broker_url": own_redis.url, "reap_every_s": 0.5,

@@ -5,9 +5,9 @@ import threading
 
 import pytest
 
-from app.db import make_engine, make_sessionmaker, upgrade
-from app.ids import new_id
-from app.models import Job, Owner
+from kernel.db import make_engine, make_sessionmaker, upgrade
+from kernel.ids import new_id
+from kernel.models import Job, Owner
 from worker.runner import claim
 
 

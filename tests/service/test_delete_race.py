@@ -8,13 +8,12 @@ import random
 
 import httpx
 import pytest
-
 from sqlalchemy import func, select
 
-from app.auth import hash_token
-from app.db import upgrade
-from app.ids import new_id
-from app.models import Dataset, Job, Token
+from app.core.auth import hash_token
+from kernel.db import upgrade
+from kernel.ids import new_id
+from kernel.models import Dataset, Job, Token
 
 from .private_api import private_api
 

@@ -47,7 +47,7 @@ async def open_stream(client: httpx.AsyncClient, url: str, first: asyncio.Event,
 
 
 def test_hundred_open_streams_leave_the_api_responsive(own_settings):
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     # No worker reads this queue: the job stays queued, and its streams stay open, until it is cancelled.

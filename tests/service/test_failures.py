@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from app.ids import new_id
-from app.models import Dataset, Job
 from drop_engine.config import build_config
+from kernel.ids import new_id
+from kernel.models import Dataset, Job
 from worker.runner import run_job
 
 # The temperature runs away (tests/test_divergence.py): the critic's loss overflows by the first epoch's end.

@@ -7,11 +7,11 @@ from contextlib import ExitStack
 
 import pytest
 
-from app.db import upgrade
-from app.joblimits import check
-from app.settings import Settings
+from app.jobs.limits import check
 from drop_engine.config import PRESETS, build_config
 from drop_engine.resources import DataShape
+from kernel.db import upgrade
+from kernel.settings import Settings
 
 from .private_api import private_api, tiny_npz
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from sqlalchemy import update
 
-from app.auth import get_or_create_owner
-from app.db import make_engine, make_sessionmaker
-from app.models import Job
+from app.core.auth import get_or_create_owner
+from kernel.db import make_engine, make_sessionmaker
+from kernel.models import Job
 from worker.callback import DbCallback
 
 

@@ -1,13 +1,20 @@
 """The service refuses an unmigrated database, and `drop db upgrade` fixes it; upgrading keeps recorded jobs whole."""
 from __future__ import annotations
 
+from contextlib import contextmanager
+from typing import Iterator
+
 import pytest
 from sqlalchemy import text
+from sqlalchemy.exc import IntegrityError
 
 from app.cli import main
-from app.db import upgrade
 from app.main import NotMigrated, create_app
-from app.settings import Settings
+from kernel.db import upgrade
+from kernel.job_state import JobStatus
+from kernel.settings import Settings
+
+from .conftest import database
 
 
 def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, capsys):
@@ -24,13 +31,14 @@ def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, cap
     assert token.startswith("drop_") and len(token) > 40
 
 
-def _old_database(tmp_path, revision: str):
-    """A SQLite database migrated only up to `revision`, holding one owner: where an upgrade finds recorded rows."""
+def _old_database(tmp_path, revision: str, url: str | None = None):
+    """A database (SQLite unless `url`) migrated only up to `revision`, holding one owner: where an upgrade finds
+    recorded rows."""
     from alembic import command
 
-    from app.db import alembic_config, make_engine
+    from kernel.db import alembic_config, make_engine
 
-    url = f"sqlite:///{tmp_path / 'old.db'}"
+    url = url or f"sqlite:///{tmp_path / 'old.db'}"
     command.upgrade(alembic_config(url), revision)
     engine = make_engine(url)
     with engine.begin() as conn:
@@ -69,3 +77,55 @@ def test_upgrade_fills_the_decoded_size_of_recorded_datasets(tmp_path):
         decoded = conn.execute(text("SELECT decoded_bytes FROM datasets")).scalar_one()
     engine.dispose()
     assert decoded == 1_000_000 * (2 * 11 + 3 + 2) * 4
+
+
+def _job_row(conn, job_id: str, status: str) -> None:
+    conn.execute(text(
+        "INSERT INTO jobs (id, owner_id, algorithm, env, preset, overrides, seed, config, status, attempts, "
+        "max_attempts, max_runtime_s, created_at) VALUES (:id, 'own_1', 'drop', 'hopper', 'smoke', '{}', 0, '{}', "
+        ":status, 1, 3, 600, CURRENT_TIMESTAMP)"), {"id": job_id, "status": status})
+
+
+def _refuses(engine, status: str) -> bool:
+    try:
+        with engine.begin() as conn:
+            conn.execute(text("UPDATE jobs SET status = :status WHERE id = 'job_1'"), {"status": status})
+    except IntegrityError:
+        return True
+    return False
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_job_status_check_keeps_recorded_jobs_and_downgrades(backend, tmp_path):
+    """Migration 0005 holds jobs.status to JobStatus on both backends; on SQLite, where batch mode recreates the jobs
+    table, the rows that refer to a job (its events) survive both ways."""
+    from alembic import command
+
+    from kernel.db import alembic_config
+
+    with database() if backend == "postgresql" else _no_database() as pg_url:
+        url, engine = _old_database(tmp_path, "0004", pg_url)
+        with engine.begin() as conn:
+            _job_row(conn, "job_1", "succeeded")
+            conn.execute(text("INSERT INTO job_events (job_id, type, message, created_at) "
+                              "VALUES ('job_1', 'status', 'succeeded', CURRENT_TIMESTAMP)"))
+        upgrade(url)
+        assert _refuses(engine, "bogus")
+        with engine.begin() as conn:
+            for status in JobStatus:  # the statuses written out in the migration are the enum's
+                _job_row(conn, f"job_{status.value}", status.value)
+        command.downgrade(alembic_config(url), "0004")
+        assert not _refuses(engine, "bogus")
+        with engine.begin() as conn:
+            conn.execute(text("UPDATE jobs SET status = 'succeeded' WHERE id = 'job_1'"))
+        upgrade(url)
+        with engine.connect() as conn:
+            events = conn.execute(text("SELECT count(*) FROM job_events WHERE job_id = 'job_1'")).scalar_one()
+            jobs = conn.execute(text("SELECT count(*) FROM jobs")).scalar_one()
+        engine.dispose()
+    assert (events, jobs) == (1, 1 + len(JobStatus))
+
+
+@contextmanager
+def _no_database() -> Iterator[None]:
+    yield None

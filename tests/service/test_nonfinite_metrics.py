@@ -1,9 +1,9 @@
 """A metric that went NaN or infinite leaves the job readable: null in the job, no metric row, never a 500."""
 from __future__ import annotations
 
-from app.auth import get_or_create_owner
-from app.ids import new_id
-from app.models import Job
+from app.core.auth import get_or_create_owner
+from kernel.ids import new_id
+from kernel.models import Job
 from worker.callback import DbCallback
 
 

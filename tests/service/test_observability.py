@@ -26,7 +26,7 @@ def sample(text: str, name: str, **labels: str) -> float:
 @pytest.fixture
 def served(own_settings, tmp_path):
     """An app and a worker of the test's own, on a database of its own, so every count is the test's."""
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     app = create_app(own_settings)
@@ -85,7 +85,7 @@ def test_metrics_move_during_a_smoke_job(served, hopper_file):
 @pytest.fixture
 def json_logs():
     """JSON log lines, as `drop api` writes them to stderr, captured here; logging is restored afterwards."""
-    from app.logs import configure
+    from kernel.logs import configure
 
     root = logging.getLogger()
     saved = root.handlers[:], root.level

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import torch
 
-from app.models import Job
-from app.storage import job_dir
+from kernel.models import Job
+from kernel.storage import job_dir
 
 
 def _dynamics(app, job_id: str) -> dict:

@@ -6,8 +6,8 @@ from datetime import timedelta
 
 from sqlalchemy import select
 
-from app.ids import new_id
-from app.models import Job, JobEvent, Owner, utcnow
+from kernel.ids import new_id
+from kernel.models import Job, JobEvent, Owner, utcnow
 from worker.reaper import reap
 from worker.runner import claim
 

@@ -16,7 +16,7 @@ from typing import Iterator
 import httpx
 import pytest
 
-from app.logs import ACCEPT_ERROR
+from kernel.logs import ACCEPT_ERROR
 
 from .conftest import REPO, free_port, settings_env, wait_ready
 from .private_api import tiny_npz
@@ -51,8 +51,8 @@ def api_process(settings, tmp_path: Path, nofile: int | None = None, **overrides
 
 @pytest.fixture(scope="module")
 def tokens(settings) -> dict[str, str]:
-    from app.auth import create_token
-    from app.db import make_engine, make_sessionmaker
+    from app.core.auth import create_token
+    from kernel.db import make_engine, make_sessionmaker
 
     engine = make_engine(settings.database_url)
     try:
@@ -178,7 +178,7 @@ def test_running_out_of_file_descriptors_logs_one_line_per_interval(settings, tm
 def test_the_line_let_through_says_how_many_were_dropped():
     import logging
 
-    from app.logs import OncePer
+    from kernel.logs import OncePer
 
     now = [0.0]
     limit = OncePer(ACCEPT_ERROR, 10.0, clock=lambda: now[0])

@@ -40,7 +40,7 @@ def disk(own_settings, tmp_path):
 def api(disk):
     from fastapi.testclient import TestClient
 
-    from app.auth import create_token
+    from app.core.auth import create_token
     from app.main import create_app
 
     with TestClient(create_app(disk), raise_server_exceptions=False) as c:
@@ -57,7 +57,7 @@ def _files(folder: Path) -> list[Path]:
     ("uploads", ("ro",), "storage_unwritable"),
 ])
 def test_upload_to_full_storage_is_507_and_keeps_nothing(disk, api, tmpfs, hopper_file, folder, options, code):
-    from app.models import Dataset
+    from kernel.models import Dataset
 
     tmpfs(disk.data_dir / folder, *options)
     r = api.upload(hopper_file)

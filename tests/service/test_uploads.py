@@ -164,8 +164,8 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
     test_hostile_uploads.)"""
     import asyncio
 
-    from app.settings import Settings
     from app.validate import Invalid, Validator
+    from kernel.settings import Settings
 
     rows = 16_000_000
     bomb = tmp_path / "bomb.hdf5"

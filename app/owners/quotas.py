@@ -1,6 +1,6 @@
 """Per-owner quotas: unfinished jobs (429) and stored dataset bytes (413).
 
-Each check counts under the owner's lock (app/owner_lock.py), so two requests of one owner at once cannot both count
+Each check counts under the owner's lock (app/owners/lock.py), so two requests of one owner at once cannot both count
 the same total and both slip past. On a refusal the transaction is rolled back at once, which frees the lock. A
 dataset counts at the larger of its file size and its decoded size (`Dataset.charged_bytes`).
 """
@@ -11,10 +11,12 @@ from typing import Callable
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from .models import ACTIVE_STATUSES, Dataset, Job
-from .owner_lock import lock_owner
-from .problems import Problem
-from .settings import Settings
+from kernel.job_state import ACTIVE, status_in
+from kernel.models import Dataset, Job
+from kernel.settings import Settings
+
+from ..core.problems import Problem
+from .lock import lock_owner
 
 RETRY_AFTER_S = 60  # jobs take minutes; asking again sooner is pointless
 
@@ -28,7 +30,7 @@ def check_active_jobs(s: Session, owner_id: str, settings: Settings) -> None:
     """Raise 429 if the owner already has the most unfinished jobs allowed; the lock lasts until the caller commits."""
     lock_owner(s, owner_id)
     active = s.scalar(select(func.count()).select_from(Job)
-                      .where(Job.owner_id == owner_id, Job.status.in_(ACTIVE_STATUSES)))
+                      .where(Job.owner_id == owner_id, status_in(ACTIVE)))
     limit = settings.max_active_jobs_per_owner
     if active >= limit:
         raise _refuse(s, Problem(

@@ -1,5 +1,5 @@
-"""The service behind /v1/datasets: an upload streamed, validated and recorded within the owner's limits, and a
-delete that cannot pass a job being created on the same dataset."""
+"""The service behind /v1/datasets: an upload streamed, validated and saved within the owner's limits, the owner's
+datasets, and a delete that cannot pass a job being created on the same dataset."""
 from __future__ import annotations
 
 from fastapi import Request
@@ -8,18 +8,37 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from drop_engine.data_rows import DataShape
+from kernel.ids import is_id, new_id
+from kernel.job_state import ACTIVE, status_in
+from kernel.models import Dataset, Job
+from kernel.settings import Settings
+from kernel.storage import dataset_dir, remove_tree, upload_dir
 
-from . import quotas
-from .deps import owned_dataset
-from .ids import new_id
-from .metrics import UPLOAD_BYTES, VALIDATION_SECONDS
-from .models import ACTIVE_STATUSES, Dataset, Job
-from .owner_lock import lock_owner
-from .problems import Problem
-from .settings import Settings
-from .storage import dataset_dir, remove_tree, upload_dir
-from .upload import Upload, receive
-from .validate import Invalid
+from ..core.pages import fetch_page
+from ..core.problems import Problem
+from ..observability.metrics import UPLOAD_BYTES, VALIDATION_SECONDS
+from ..owners import quotas
+from ..owners.lock import lock_owner
+from ..upload import Upload, receive
+from ..validate import Invalid
+from .schemas import dataset as dataset_dict
+
+
+def owned_dataset(s: Session, owner_id: str, dataset_id: str) -> Dataset:
+    """The owner's dataset or 404."""
+    q = select(Dataset).where(Dataset.id == dataset_id, Dataset.owner_id == owner_id)
+    row = s.scalar(q) if is_id(dataset_id, "ds") else None
+    if row is None:
+        raise Problem(404, "not_found", f"dataset {dataset_id} not found")
+    return row
+
+
+def page(s: Session, owner: str, after: str | None, limit: int) -> dict:
+    """The owner's datasets, newest first, after the cursor `after`."""
+    q = select(Dataset).where(Dataset.owner_id == owner)
+    if after:
+        q = q.where(Dataset.id < after)
+    return fetch_page(s, q.order_by(Dataset.id.desc()), dataset_dict, limit)
 
 
 def _save(s: Session, row: Dataset, settings: Settings) -> None:
@@ -71,7 +90,7 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     first and the job's creation answers 404."""
     lock_owner(s, owner)
     row = owned_dataset(s, owner, dataset_id)
-    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, Job.status.in_(ACTIVE_STATUSES)).limit(1))
+    busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, status_in(ACTIVE)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
     s.delete(row)

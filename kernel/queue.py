@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from celery import Celery
 
-from app.settings import Settings
+from .settings import Settings
 
 TASK_RUN_JOB = "drop.run_job"
 

@@ -36,11 +36,6 @@ class Base(DeclarativeBase):
     type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON, list[Any]: JSON}
 
 
-JOB_STATUSES = ("queued", "running", "cancelling", "succeeded", "failed", "cancelled")
-ACTIVE_STATUSES = ("queued", "running", "cancelling")
-FINAL_STATUSES = ("succeeded", "failed", "cancelled")
-
-
 class Owner(Base):
     __tablename__ = "owners"
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
@@ -101,6 +96,7 @@ class Job(Base):
     overrides: Mapped[dict[str, Any]]
     seed: Mapped[int] = mapped_column(Integer)
     config: Mapped[dict[str, Any]]
+    # One of kernel.job_state.JobStatus (CHECK ck_jobs_status, migration 0005), changed by job_state.transition alone.
     status: Mapped[str] = mapped_column(String(20), default="queued")
     progress: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     latest_metrics: Mapped[dict[str, Any] | None] = mapped_column(JSON)

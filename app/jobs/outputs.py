@@ -4,42 +4,29 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
-from typing import Annotated, Callable, Literal
+from typing import Annotated, Callable
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
-from starlette.background import BackgroundTask
-from sqlalchemy import select
 from sqlalchemy.orm import Session
+from starlette.background import BackgroundTask
 
 from drop_engine.plots import learning_curve
 from drop_engine.scores import Which
+from kernel.job_state import FINAL
+from kernel.settings import Settings
 
-from .. import reads, serialize
-from ..deps import DB, Config, Owner, owned_job
-from ..models import FINAL_STATUSES, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
-from ..problems import Problem
-from ..schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, Page
-from ..settings import Settings
-from ..storage import job_dir
+from ..core.deps import DB, Config, Owner
+from ..core.pages import Page
+from . import reads
+from .schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
 SSE_POLL_S = 0.5
 SSE_KEEPALIVE_S = 15.0
 MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a larger cursor is a 422, not a 500
 After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
-
-
-def _events_after(factory, job_id: str, after: int, limit: int) -> tuple[list[dict], str]:
-    """(events after `after`, the job's status). The status is read first: a final status commits together with its
-    events, so when it is final here they are all in the rows read next, and the stream cannot end short of them."""
-    with factory() as s:
-        status = s.scalar(select(Job.status).where(Job.id == job_id))
-        rows = s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
-                         .order_by(JobEvent.id).limit(limit))
-        return [serialize.event(r) for r in rows], status
 
 
 async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
@@ -51,14 +38,14 @@ async def _stream(request: Request, job_id: str, after: int, release: Callable[[
             quiet = 0.0
             while True:
                 seen = topic.version
-                items, status = await run_in_threadpool(_events_after, factory, job_id, after, 500)
+                items, status = await run_in_threadpool(reads.events_after, factory, job_id, after, 500)
                 for item in items:
                     after = item["id"]
                     yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
                 if items:
                     quiet = 0.0
                     continue
-                if status in FINAL_STATUSES or status is None:
+                if status in FINAL or status is None:
                     yield f"event: end\ndata: {json.dumps({'status': status})}\n\n"
                     return
                 if await request.is_disconnected():
@@ -96,40 +83,27 @@ async def job_events(job_id: str, request: Request, after: After = 0, limit: int
 def job_metrics(job_id: str, name: str | None = Query(None, max_length=100, pattern=r"^[^\x00]*$"),
                 after: After = 0, limit: int = Query(1000, ge=1, le=10000), owner: str = Owner,
                 s: Session = DB) -> dict:
-    owned_job(s, owner, job_id)
-    q = select(JobMetric).where(JobMetric.job_id == job_id, JobMetric.id > after)
-    if name:
-        q = q.where(JobMetric.name == name)
-    return serialize.fetch_page(s, q.order_by(JobMetric.id), serialize.metric, limit)
+    return reads.metrics_page(s, owner, job_id, name, after, limit)
 
 
-@router.get("/evaluations", response_model=Page[EvaluationOut], summary="Evaluations in the real env (return and D4RL normalised score)")
+@router.get("/evaluations", response_model=Page[EvaluationOut],
+            summary="Evaluations in the real env (return and D4RL normalised score)")
 def job_evaluations(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
-    owned_job(s, owner, job_id)
-    rows = s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id))
-    return serialize.page([serialize.evaluation(r) for r in rows], False)
+    return reads.evaluations_page(s, owner, job_id)
 
 
-@router.get("/checkpoints", response_model=Page[CheckpointOut], summary="Checkpoints still on disk (older ones are pruned by the trainer)")
+@router.get("/checkpoints", response_model=Page[CheckpointOut],
+            summary="Checkpoints still on disk (older ones are pruned by the trainer)")
 def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
-    owned_job(s, owner, job_id)
-    rows = s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == job_id).order_by(JobCheckpoint.id))
-    return serialize.page([serialize.checkpoint(r) for r in rows if Path(r.path).is_file()], False)
+    return reads.checkpoints_page(s, owner, job_id)
 
 
 @router.get("/curve.png", summary="Learning curve (normalised score per evaluation)", response_class=Response,
             responses={200: {"content": {"image/png": {}}}})
 def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
-    owned_job(s, owner, job_id)
-    rows = list(s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id)))
+    rows = reads.evaluations(s, owner, job_id)
     png = learning_curve(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
     return Response(png, media_type="image/png")
-
-
-POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
-                "state_dict": ("policy_state_dict.pt", "application/octet-stream"),
-                "onnx": ("policy.onnx", "application/octet-stream"),
-                "metadata": ("metadata.json", "application/json")}
 
 
 @router.get("/policy", summary="A trained policy, last or best: TorchScript or ONNX (obs batch -> actions), state_dict, "
@@ -138,16 +112,7 @@ def job_policy(job_id: str,
                which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one of the "
                                                          "evaluation with the highest normalised score (the earlier of "
                                                          "ties), chosen by evaluations in the real env")] = "last",
-               format: Literal["torchscript", "state_dict", "onnx", "metadata"] = "torchscript",
+               format: reads.PolicyFormat = "torchscript",
                owner: str = Owner, s: Session = DB, settings: Settings = Config):
-    job = owned_job(s, owner, job_id)
-    if job.status != "succeeded":
-        raise Problem(409, "policy_not_ready", f"job {job_id} is {job.status}; a policy exists once it has succeeded")
-    name, media = POLICY_FILES[format]
-    folder = job_dir(settings, job_id) / "policy"
-    path = folder / which / name
-    if which == "last" and not path.is_file():
-        path = folder / name  # a job that succeeded before runs exported both policies kept its only one here
-    if not path.is_file():
-        raise Problem(404, "not_found", f"job {job_id} has no {format} file for its {which} policy")
-    return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{name}")
+    path, media = reads.policy_file(s, owner, job_id, which, format, settings)
+    return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}")

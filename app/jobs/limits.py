@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from drop_engine.config import TrainConfig
 from drop_engine.resources import DataShape, ResourceEstimate, estimate
+from kernel.settings import Settings
 
-from .problems import Problem
-from .settings import Settings
+from ..core.problems import Problem
 
 
 def _size(n: int) -> str:

@@ -2,7 +2,7 @@
 
 With several API processes (`drop api --workers N`) each writes its samples to files in PROMETHEUS_MULTIPROC_DIR,
 which `drop api` sets, and a scrape of any one process sums them all. Job metrics are not kept here: they are
-computed from the database at scrape time (app/job_metrics.py), so every worker's jobs count without workers serving
+computed from the database at scrape time (app/jobs/metrics.py), so every worker's jobs count without workers serving
 metrics of their own.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from prometheus_client import (REGISTRY, CollectorRegistry, Counter, Histogram, 
 from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
 
-from .problems import Problem
+from ..core.problems import Problem
 
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 P = ParamSpec("P")

@@ -9,7 +9,7 @@ from __future__ import annotations
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
-from .models import Owner
+from kernel.models import Owner
 
 
 def lock_owner(s: Session, owner_id: str) -> None:

@@ -1,14 +1,20 @@
-"""Liveness and readiness probes."""
+"""What operators poll: liveness and readiness probes, and the Prometheus scrape endpoint."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from prometheus_client import CONTENT_TYPE_LATEST
+from pydantic import BaseModel
 from sqlalchemy import text
 
-from ..problems import problem_response
-from ..schemas import Status
+from ..core.problems import problem_response
+from .metrics import exposition
 
 router = APIRouter(tags=["health"])
+
+
+class Status(BaseModel):
+    status: str
 
 
 @router.get("/healthz", response_model=Status, summary="The process is up")
@@ -37,3 +43,9 @@ async def readyz(request: Request):
     if problems:
         return problem_response(503, "not_ready", "; ".join(problems))
     return {"status": "ready"}
+
+
+@router.get("/metrics", response_class=Response, summary="Prometheus metrics: HTTP, uploads, jobs (text format)",
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+def metrics(request: Request) -> Response:
+    return Response(exposition(request.app.state.job_metrics), media_type=CONTENT_TYPE_LATEST)

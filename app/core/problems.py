@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from .storage_errors import storage_failure
+from kernel.storage_errors import storage_failure
 
 log = logging.getLogger("drop.api")
 MEDIA_TYPE = "application/problem+json"

@@ -5,10 +5,11 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from . import joblimits
-from .models import Dataset
-from .problems import Problem
-from .settings import Settings
+from kernel.models import Dataset
+from kernel.settings import Settings
+
+from ..core.problems import Problem
+from . import limits
 
 # Identity fields are job fields, and the device and threads belong to the worker: not overridable.
 ALGORITHMS = ("drop", "mopo", "mbpo")
@@ -88,5 +89,5 @@ def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, d
         message = str(exc)
         field = message.split(":", 1)[0] if ":" in message else "overrides"
         raise _invalid("invalid_config", message, field) from None
-    joblimits.check(config, DataShape(dataset.report["transitions"], dataset.obs_dim, dataset.act_dim), settings)
+    limits.check(config, DataShape(dataset.report["transitions"], dataset.obs_dim, dataset.act_dim), settings)
     return spec.name, config.model_dump(mode="json")

@@ -13,8 +13,9 @@ from collections import Counter
 from contextlib import contextmanager
 from typing import Callable, Iterator, Literal
 
+from kernel.settings import Settings
+
 from .problems import Problem
-from .settings import Settings
 
 Bound = Literal["owner", "total"]
 UPLOAD_RETRY_AFTER_S = 10  # an upload and its validation take seconds to minutes

@@ -9,8 +9,9 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from .ids import new_id
-from .models import Owner, Token, utcnow
+from kernel.ids import new_id
+from kernel.models import Owner, Token, utcnow
+
 from .problems import Problem
 
 LOCAL_OWNER = "local"
@@ -55,8 +56,8 @@ def list_tokens(factory: sessionmaker[Session], owner: str | None = None) -> lis
 def revoke_token(factory: sessionmaker[Session], ref: str) -> Token:
     """Revoke the token with id `ref`, the one token whose id starts with `ref`, or the token `ref` itself.
 
-    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/token_cache.py), so a revoked
-    token is refused from that long after at the latest.
+    Each API process remembers a token's owner for DROP_TOKEN_CACHE_S seconds (app/core/token_cache.py), so a
+    revoked token is refused from that long after at the latest.
     """
     if not ref:
         raise TokenNotFound("give a token id, the start of one, or the token itself")

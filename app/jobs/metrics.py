@@ -13,7 +13,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from sqlalchemy import case, func, select
 from sqlalchemy.engine import Engine
 
-from .models import FINAL_STATUSES, JOB_STATUSES, Job
+from kernel.job_state import FINAL, JobStatus, status_in
+from kernel.models import Job
 
 QUEUE_WAIT_BUCKETS = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 24 * 3600)
 RUN_BUCKETS = (10, 60, 300, 900, 3600, 3 * 3600, 12 * 3600, 24 * 3600, 72 * 3600)
@@ -43,14 +44,14 @@ class JobMetrics:
             func.count(case((Job.dynamics_from_cache.is_(True), 1))),
             func.count(case((Job.dynamics_from_cache.is_(False), 1))),
             *_histogram_columns(Job.queue_wait_s, QUEUE_WAIT_BUCKETS),
-            *_histogram_columns(case((Job.status.in_(FINAL_STATUSES), Job.run_s)), RUN_BUCKETS),
+            *_histogram_columns(case((status_in(FINAL), Job.run_s)), RUN_BUCKETS),
         )
         with self.engine.connect() as conn:
             by_status = dict(conn.execute(select(Job.status, func.count()).group_by(Job.status)).all())
             attempts, hits, misses, *rest = conn.execute(aggregates).one()
         jobs = GaugeMetricFamily("drop_jobs", "Jobs by status", labels=["status"])
-        for status in JOB_STATUSES:
-            jobs.add_metric([status], by_status.get(status, 0))
+        for status in JobStatus:
+            jobs.add_metric([status.value], by_status.get(status.value, 0))
         yield jobs
         # A gauge, not a counter: an attempt handed back by a stopping worker is taken off again, and a counter that
         # goes down reads as a reset.

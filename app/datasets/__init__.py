@@ -1,0 +1,1 @@
+"""/v1/datasets: upload (streamed, validated in a sandboxed child), list, get, delete."""

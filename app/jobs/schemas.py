@@ -1,0 +1,117 @@
+"""The job objects the API answers with: their response models, so the OpenAPI schema tells clients (and the schema
+fuzz test) exactly what comes back, and the dicts rows become. Where a route has FastAPI check its answer, it checks
+these dicts against these models on the way out."""
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from drop_engine.scores import FINAL_WINDOW
+from kernel.job_state import JobStatus
+from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+
+from ..core.pages import iso, timestamp
+
+
+class JobError(BaseModel):
+    code: str
+    message: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    object: Literal["job"]
+    created_at: str = timestamp()
+    status: Literal[tuple(s.value for s in JobStatus)]  # type: ignore[valid-type]
+    dataset_id: str | None = Field(description="null once the dataset is deleted")
+    algorithm: str
+    env: str
+    preset: str
+    overrides: dict[str, Any]
+    seed: int
+    progress: dict[str, Any] | None
+    latest_metrics: dict[str, Any] | None
+    best_score: float | None = Field(description="the highest normalised score of any evaluation so far")
+    last_score: float | None = Field(description="the normalised score of the latest evaluation")
+    best_epoch: int | None = Field(description="the epoch of best_score (the earlier of ties): the `which=best` policy's")
+    final_score: float | None = Field(description=f"the mean normalised score of the last {FINAL_WINDOW} evaluations "
+                                                  "(fewer if fewer ran): steadier than last_score")
+    error: JobError | None
+    attempts: int
+    max_attempts: int
+    max_runtime_s: int
+    started_at: str | None = timestamp()
+    finished_at: str | None = timestamp()
+    heartbeat_at: str | None = timestamp()
+    config: dict[str, Any] = Field(description="the whole validated training config the worker runs")
+
+
+class EventOut(BaseModel):
+    id: int
+    object: Literal["job.event"]
+    created_at: str = timestamp()
+    type: str
+    message: str
+    data: dict[str, Any] | None
+
+
+class MetricOut(BaseModel):
+    id: int
+    object: Literal["job.metric"]
+    created_at: str = timestamp()
+    name: str
+    step: int
+    value: float
+
+
+class EvaluationOut(BaseModel):
+    id: int
+    object: Literal["job.evaluation"]
+    created_at: str = timestamp()
+    epoch: int
+    mean_return: float
+    normalized_score: float
+
+
+class CheckpointOut(BaseModel):
+    id: int
+    object: Literal["job.checkpoint"]
+    created_at: str = timestamp()
+    epoch: int
+    step: int
+    size_bytes: int
+
+
+def job(row: Job) -> dict:
+    return {
+        "id": row.id, "object": "job", "created_at": iso(row.created_at), "status": row.status,
+        "dataset_id": row.dataset_id, "algorithm": row.algorithm, "env": row.env, "preset": row.preset,
+        "overrides": row.overrides, "seed": row.seed, "progress": row.progress, "latest_metrics": row.latest_metrics,
+        "best_score": row.best_score, "last_score": row.last_score, "best_epoch": row.best_epoch,
+        "final_score": row.final_score,
+        "error": {"code": row.error_code, "message": row.error_message} if row.error_code else None,
+        "attempts": row.attempts, "max_attempts": row.max_attempts, "max_runtime_s": row.max_runtime_s,
+        "started_at": iso(row.started_at), "finished_at": iso(row.finished_at), "heartbeat_at": iso(row.heartbeat_at),
+        "config": row.config,
+    }
+
+
+def event(row: JobEvent) -> dict:
+    return {"id": row.id, "object": "job.event", "created_at": iso(row.created_at), "type": row.type,
+            "message": row.message, "data": row.data}
+
+
+def metric(row: JobMetric) -> dict:
+    return {"id": row.id, "object": "job.metric", "created_at": iso(row.created_at), "name": row.name,
+            "step": row.step, "value": row.value}
+
+
+def evaluation(row: JobEvaluation) -> dict:
+    return {"id": row.id, "object": "job.evaluation", "created_at": iso(row.created_at), "epoch": row.epoch,
+            "mean_return": row.mean_return, "normalized_score": row.normalized_score}
+
+
+def checkpoint(row: JobCheckpoint) -> dict:
+    return {"id": row.id, "object": "job.checkpoint", "created_at": iso(row.created_at), "epoch": row.epoch,
+            "step": row.step, "size_bytes": row.size_bytes}
