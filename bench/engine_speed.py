@@ -24,7 +24,8 @@ from drop_engine.config import build_config
 from drop_engine.data import Dataset, from_arrays, load_dataset
 from drop_engine.dynamics import GaussianEnsemble, train_dynamics
 from drop_engine.evaluate import evaluate
-from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.replay_buffer import ReplayBuffer
+from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer
 
 

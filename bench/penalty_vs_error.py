@@ -22,7 +22,8 @@ from drop_engine.checkpoint import load_latest
 from drop_engine.config import TrainConfig
 from drop_engine.data import load_dataset
 from drop_engine.penalties import ratio_penalty, uncertainty_penalty
-from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.replay_buffer import ReplayBuffer
+from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer
 from drop_engine.true_dynamics import true_step
 

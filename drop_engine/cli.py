@@ -6,7 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from .config import PRESETS, ConfigError, build_config
+from .config import PRESETS, build_config
+from .errors import ConfigError
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
 
@@ -36,7 +37,7 @@ def write_curve(run_dir: Path) -> Path:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from .callbacks import CallbackList, progress_reporter
-    from .data import DatasetError
+    from .errors import DatasetError
     from .run_log import RunLog
     from .trainer import train
 

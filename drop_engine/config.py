@@ -11,13 +11,11 @@ from typing import Annotated, Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .errors import ConfigError
+
 Algorithm = Literal["drop", "mopo", "mbpo"]
 PenaltyFn = Literal["log", "tanh", "tanh_shift"]
 PRESETS = ("paper", "cpu", "smoke")
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be built; the message names the field."""
 
 
 class _Strict(BaseModel):

@@ -17,9 +17,9 @@ from typing import Iterator, Mapping
 import numpy as np
 
 from .atomic import atomic_path
-from .data_rows import (OPTIONAL, REQUIRED, Block, DatasetError, DatasetLimits, Layout, Rows, check_rows, layout,
-                        require_rows)
+from .data_rows import OPTIONAL, REQUIRED, Block, DatasetLimits, Layout, Rows, check_rows, layout, require_rows
 from .envs import envs_matching, get_env
+from .errors import DatasetError
 
 BLOCK_BYTES = 16 << 20  # file bytes `scan` reads at once
 

@@ -12,22 +12,12 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from .errors import DatasetError, DatasetTooLarge
+
 REQUIRED = ("observations", "actions", "rewards", "terminals")
 OPTIONAL = ("next_observations", "timeouts")
 FLAGS = ("terminals", "timeouts")
 FLOAT = 4  # bytes of a float32
-
-
-class DatasetError(ValueError):
-    """A dataset that cannot be used; the message says which key and why."""
-
-
-class DatasetTooLarge(DatasetError):
-    """A dataset that declares more rows or decoded bytes than the caller's limits; `limit` says which."""
-
-    def __init__(self, message: str, limit: str):
-        super().__init__(message)
-        self.limit = limit
 
 
 class Rows(Protocol):

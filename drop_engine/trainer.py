@@ -37,7 +37,8 @@ from .evaluate import evaluate
 from .export import export_policy
 from .model_cache import ModelCache, model_key
 from .nn import in_row_chunks
-from .rollout import ReplayBuffer, model_rollout
+from .replay_buffer import ReplayBuffer
+from .rollout import model_rollout
 from .sac import SAC, Actor
 from .scores import Which, summarize
 from .stopping import Stopped, check

@@ -1,7 +1,8 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import PRESETS, ConfigError, TrainConfig, build_config
+from drop_engine.config import PRESETS, TrainConfig, build_config
+from drop_engine.errors import ConfigError
 
 
 def test_paper_preset_uses_official_dataset_settings():
