@@ -84,7 +84,8 @@ def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, d
         raise _invalid("invalid_override", f"overrides: {', '.join(bad)} cannot be overridden; use the job fields",
                        "overrides")
     try:
-        config = build_config(req.algorithm, spec.name, req.preset, req.task, req.overrides, req.seed, "cpu")
+        config = build_config(req.algorithm, env=spec.name, preset=req.preset, task=req.task, overrides=req.overrides,
+                              seed=req.seed, device="cpu")
     except ConfigError as exc:
         message = str(exc)
         field = message.split(":", 1)[0] if ":" in message else "overrides"

@@ -45,7 +45,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides = dict(args.set or [])
         if args.threads:
             overrides["threads"] = args.threads
-        config = build_config(args.algorithm, args.env, args.preset, args.task, overrides, args.seed, args.device)
+        config = build_config(args.algorithm, env=args.env, preset=args.preset, task=args.task, overrides=overrides,
+                              seed=args.seed, device=args.device)
     except ConfigError as exc:
         print(f"drop train: {exc}", file=sys.stderr)
         return 2
@@ -86,7 +87,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate
+    from .evaluation import evaluate
     from .export import load_policy
 
     result = evaluate(load_policy(args.policy), args.env, args.episodes, args.seed, args.env_version)
@@ -151,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a policy on a dataset file")
-    p.add_argument("--dataset", required=True, help="D4RL-layout .hdf5 or .npz")
+    p.add_argument("--dataset", required=True, help="D4RL-layout .hdf5 or .npz, or a Minari dataset's zip")
     p.add_argument("--env", default="hopper", help="hopper | walker2d | halfcheetah")
     p.add_argument("--algorithm", default="drop", choices=["drop", "mopo", "mbpo"])
     p.add_argument("--preset", default="cpu", choices=PRESETS)

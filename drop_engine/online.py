@@ -23,7 +23,7 @@ import torch
 from .atomic import save_durably
 from .config import SACConfig
 from .envs import get_env, make_env
-from .evaluate import evaluate
+from .evaluation import evaluate
 from .replay_buffer import ReplayBuffer
 from .sac import SAC, Actor
 
