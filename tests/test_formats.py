@@ -163,12 +163,8 @@ def test_minari_main_data_gets_the_hdf5_structure_checks(tmp_path, hopper_arrays
         load_dataset(path)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda ep: ep.pop("truncations"), "episode_0/truncations: missing or not an array"),
-    (lambda ep: ep.update(observations=ep["observations"][:-1]), "episode_0/observations: expected 21 rows"),
-    (lambda ep: ep.update(rewards=ep["rewards"][:-1]), "episode_0/rewards: expected shape (20,)"),
-], ids=["missing-key", "observations-without-the-last", "short-rewards"])
-def test_malformed_minari_episodes(tmp_path, change, message):
+def _one_episode_zip(path: Path, change) -> Path:
+    """A Minari zip of one 20-step episode of zeros, truncated at its end, as `change(episode)` leaves it."""
     episode = {"observations": np.zeros((21, 11), np.float32), "actions": np.zeros((20, 3), np.float32),
                "rewards": np.zeros(20), "terminations": np.zeros(20, bool), "truncations": np.eye(1, 20, 19)[0] > 0}
     change(episode)
@@ -176,6 +172,20 @@ def test_malformed_minari_episodes(tmp_path, change, message):
     with h5py.File(h5, "w") as f:
         for key, value in episode.items():
             f[f"episode_0/{key}"] = value
+    return _write_zip(path, {MAIN: h5.getvalue()})
+
+
+def test_a_step_both_terminated_and_truncated_is_a_terminal(tmp_path):
+    data = load_dataset(_one_episode_zip(tmp_path / "end.zip", lambda ep: ep["terminations"].__setitem__(19, True)))
+    assert (data.terminals.sum(), data.timeouts.sum(), data.terminals[-1]) == (1, 0, True)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda ep: ep.pop("truncations"), "episode_0/truncations: missing or not an array"),
+    (lambda ep: ep.update(observations=ep["observations"][:-1]), "episode_0/observations: expected 21 rows"),
+    (lambda ep: ep.update(rewards=ep["rewards"][:-1]), "episode_0/rewards: expected shape (20,)"),
+], ids=["missing-key", "observations-without-the-last", "short-rewards"])
+def test_malformed_minari_episodes(tmp_path, change, message):
     with pytest.raises(DatasetError) as info:
-        load_dataset(_write_zip(tmp_path / "bad.zip", {MAIN: h5.getvalue()}))
+        load_dataset(_one_episode_zip(tmp_path / "bad.zip", change))
     assert str(info.value).startswith(message)

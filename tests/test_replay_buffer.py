@@ -45,9 +45,10 @@ def test_samples_come_from_filled_slots_only():
 
 def test_a_wrapped_buffer_resumes_from_its_state():
     buffer = ReplayBuffer(5, obs_dim=2, act_dim=1)
-    buffer.add(**_rows(0, 7))  # rows 2..6 fit, in slots 0..4
+    buffer.add(**_rows(0, 3))
+    buffer.add(**_rows(3, 4))
     restored = ReplayBuffer(5, obs_dim=2, act_dim=1)
     restored.load_state_dict(buffer.state_dict())
     restored.add(**_rows(7, 1))  # overwrites the oldest row, 2, as the original would
     buffer.add(**_rows(7, 1))
-    assert _held(restored) == _held(buffer) == [7, 3, 4, 5, 6]
+    assert _held(restored) == _held(buffer) == [5, 6, 7, 3, 4]
