@@ -145,24 +145,6 @@ def test_a_zip_entry_that_expands_past_its_declared_size_is_a_broken_zip(tmp_pat
         load_dataset(path)
 
 
-def test_minari_main_data_gets_the_hdf5_structure_checks(tmp_path, hopper_arrays):
-    """An episode's rewards as an external link to another file: refused before the other file is opened."""
-    secret = tmp_path / "secret.hdf5"
-    with h5py.File(secret, "w") as f:
-        f["rewards"] = np.full(50, 123456.0, np.float32)
-    h5 = io.BytesIO()
-    with h5py.File(h5, "w") as f:
-        episode = f.create_group("episode_0")
-        episode["observations"] = np.zeros((51, 11), np.float32)
-        episode["actions"] = np.zeros((50, 3), np.float32)
-        episode["rewards"] = h5py.ExternalLink(str(secret), "/rewards")
-        episode["terminations"] = np.zeros(50, bool)
-        episode["truncations"] = np.eye(1, 50, 49, dtype=bool)[0]
-    path = _write_zip(tmp_path / "hostile.zip", {MAIN: h5.getvalue()})
-    with pytest.raises(DatasetError, match="^episode_0/rewards: an external link to another file"):
-        load_dataset(path)
-
-
 def _one_episode_zip(path: Path, change) -> Path:
     """A Minari zip of one 20-step episode of zeros, truncated at its end, as `change(episode)` leaves it."""
     episode = {"observations": np.zeros((21, 11), np.float32), "actions": np.zeros((20, 3), np.float32),
@@ -178,6 +160,17 @@ def _one_episode_zip(path: Path, change) -> Path:
 def test_a_step_both_terminated_and_truncated_is_a_terminal(tmp_path):
     data = load_dataset(_one_episode_zip(tmp_path / "end.zip", lambda ep: ep["terminations"].__setitem__(19, True)))
     assert (data.terminals.sum(), data.timeouts.sum(), data.terminals[-1]) == (1, 0, True)
+
+
+def test_minari_main_data_gets_the_hdf5_structure_checks(tmp_path):
+    """An episode's rewards as an external link to another file: refused before the other file is opened."""
+    secret = tmp_path / "secret.hdf5"
+    with h5py.File(secret, "w") as f:
+        f["rewards"] = np.full(20, 123456.0)
+    path = _one_episode_zip(tmp_path / "hostile.zip", lambda ep: ep.update(rewards=h5py.ExternalLink(str(secret),
+                                                                                                     "/rewards")))
+    with pytest.raises(DatasetError, match="^episode_0/rewards: an external link to another file"):
+        load_dataset(path)
 
 
 @pytest.mark.parametrize("change, message", [

@@ -140,18 +140,12 @@ def test_declared_sizes_are_refused_before_any_row_is_read(tmp_path, make, messa
     assert str(info.value).startswith(message) and info.value.limit == "rows"
 
 
-def _vlen_floats() -> np.ndarray:
-    value = np.empty(50, dtype=h5py.vlen_dtype(np.float32))
-    for i in range(50):
-        value[i] = np.zeros(1 + i % 3, np.float32)
-    return value
-
-
 @pytest.mark.parametrize("value, kind", [
     (np.array([b"not a number"] * 50), "strings"),
     (np.array(["text"] * 50, dtype=h5py.string_dtype()), "strings"),
     (np.zeros(50, dtype=[("a", "f4"), ("b", "i4")]), "a compound of fields"),
-    (_vlen_floats(), "variable-length arrays"),
+    (np.array([np.zeros(1 + i % 3, np.float32) for i in range(50)], dtype=h5py.vlen_dtype(np.float32)),
+     "variable-length arrays"),
     (np.zeros(50, dtype=np.complex64), "complex numbers"),
 ], ids=["bytes", "vlen-str", "compound", "vlen-float", "complex"])
 def test_non_numeric_dtypes_are_refused(tmp_path, value, kind):
