@@ -58,8 +58,8 @@ def _invalid(code: str, detail: str, field: str) -> Problem:
 def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, dict]:
     """(env name, config as JSON) for this request on this dataset, within the server's limits on a job."""
     from drop_engine.config import PRESETS, build_config
-    from drop_engine.errors import ConfigError
     from drop_engine.envs import get_env
+    from drop_engine.errors import ConfigError
     from drop_engine.resources import DataShape
 
     if req.algorithm not in ALGORITHMS:

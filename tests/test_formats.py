@@ -15,6 +15,7 @@ from drop_engine.data import describe, from_arrays, load_dataset, save_hdf5, sca
 from drop_engine.data_rows import DatasetLimits
 from drop_engine.errors import DatasetError, DatasetTooLarge
 from drop_engine.formats import sniff
+from drop_engine.minari import convert
 
 D4RL_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
 MAIN = "hopper-test-v0/data/main_data.hdf5"
@@ -160,6 +161,12 @@ def _one_episode_zip(path: Path, change) -> Path:
 def test_a_step_both_terminated_and_truncated_is_a_terminal(tmp_path):
     data = load_dataset(_one_episode_zip(tmp_path / "end.zip", lambda ep: ep["terminations"].__setitem__(19, True)))
     assert (data.terminals.sum(), data.timeouts.sum(), data.terminals[-1]) == (1, 0, True)
+
+
+def test_converting_a_zip_that_is_no_minari_dataset(tmp_path):
+    with pytest.raises(DatasetError, match=r"^file: not a Minari dataset \(no data/main_data.hdf5 in the zip\)"):
+        convert(_write_zip(tmp_path / "other.zip", {"observations.npy": b""}), tmp_path / "out.hdf5", DatasetLimits())
+    assert not (tmp_path / "out.hdf5").exists()
 
 
 def test_minari_main_data_gets_the_hdf5_structure_checks(tmp_path):
