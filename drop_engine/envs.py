@@ -15,6 +15,7 @@ EnvVersion = Literal["v4", "v5"]
 VERSIONS: tuple[EnvVersion, ...] = get_args(EnvVersion)
 DEFAULT_VERSION: EnvVersion = "v4"  # D4RL's dynamics
 
+
 @dataclass(frozen=True)
 class EnvSpec:
     name: str
