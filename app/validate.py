@@ -14,11 +14,8 @@ from __future__ import annotations
 import asyncio
 import multiprocessing
 import os
-import re
 import resource
 import shutil
-import stat
-import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -29,9 +26,8 @@ from drop_engine.data_rows import DatasetLimits
 from kernel.settings import Settings
 from kernel.storage_errors import storage_errno
 
-HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-ZIP_MAGIC = b"PK\x03\x04"
-LIMIT_SETTINGS = {"rows": "DROP_MAX_DATASET_ROWS", "decoded_bytes": "DROP_MAX_DATASET_BYTES"}
+LIMIT_SETTINGS = {"rows": "DROP_MAX_DATASET_ROWS", "decoded_bytes": "DROP_MAX_DATASET_BYTES",
+                  "zip_bytes": "4x DROP_MAX_UPLOAD_BYTES"}
 
 
 class Invalid(Exception):
@@ -42,8 +38,7 @@ class Invalid(Exception):
 class Limits:
     """What one validation may take; sent to the child."""
 
-    dataset: DatasetLimits
-    zip_bytes: int  # a zip's entries, expanded
+    dataset: DatasetLimits  # rows, decoded bytes, and a zip's entries expanded
     file_bytes: int  # a file the child writes: a Minari zip's HDF5 entry, or what it converts that into
     memory: int  # the child's address space
     timeout: float
@@ -51,45 +46,12 @@ class Limits:
     @classmethod
     def of(cls, settings: Settings) -> "Limits":
         zip_bytes = 4 * settings.max_upload_bytes
-        return cls(DatasetLimits(settings.max_dataset_rows, settings.max_dataset_bytes), zip_bytes,
+        return cls(DatasetLimits(settings.max_dataset_rows, settings.max_dataset_bytes, zip_bytes),
                    max(zip_bytes, settings.max_dataset_bytes) + (16 << 20), settings.validate_memory_bytes,
                    settings.validate_timeout_s)
 
 
 # ------------------------------------------------------------------------------------------------ child side
-def _check_zip(zf: zipfile.ZipFile, cap: int) -> None:
-    """Entries are only ever read by the code's own names, never extracted by theirs; still, a zip that carries
-    paths meant to escape a folder, links, or more than `cap` bytes once expanded is refused as hostile."""
-    total = 0
-    for info in zf.infolist():
-        name = info.filename
-        parts = name.replace("\\", "/").split("/")
-        if name.startswith(("/", "\\")) or re.match(r"[A-Za-z]:", name) or ".." in parts:
-            raise Invalid(f"zip entry {name!r}: an absolute path or a '..' component; not allowed")
-        if stat.S_ISLNK(info.external_attr >> 16):
-            raise Invalid(f"zip entry {name!r}: a symbolic link; not allowed")
-        total += info.file_size
-    if total > cap:
-        raise Invalid(f"zip: its entries expand to {total} bytes, over the limit of {cap} "
-                      "(4x DROP_MAX_UPLOAD_BYTES)")
-
-
-def _sniff(path: Path, cap: int) -> str:
-    head = path.open("rb").read(8)
-    if head.startswith(HDF5_MAGIC):
-        return "hdf5"
-    if head.startswith(ZIP_MAGIC):
-        with zipfile.ZipFile(path) as zf:
-            _check_zip(zf, cap)
-            names = zf.namelist()
-        if any(n.endswith("main_data.hdf5") for n in names):
-            return "minari"
-        if any(n.endswith(".npy") for n in names):
-            return "npz"
-        raise Invalid("file: a zip that is neither a Minari dataset (no data/main_data.hdf5) nor an .npz")
-    raise Invalid("file: not an HDF5 file, an .npz or a Minari zip (unrecognised leading bytes)")
-
-
 def _link_or_copy(src: Path, target: Path) -> None:
     try:
         os.link(src, target)
@@ -99,12 +61,12 @@ def _link_or_copy(src: Path, target: Path) -> None:
 
 def _child(src: Path, dest_dir: Path, limits: Limits) -> dict:
     from drop_engine.data import scan
-    from drop_engine.data_rows import DatasetError, DatasetTooLarge
-
-    from .minari import convert
+    from drop_engine.errors import DatasetError, DatasetTooLarge
+    from drop_engine.formats import sniff
+    from drop_engine.minari import convert
 
     try:
-        kind = _sniff(src, limits.zip_bytes)
+        kind = sniff(src, limits.dataset)
         target = dest_dir / ("data.npz" if kind == "npz" else "data.hdf5")
         try:
             if kind == "minari":
@@ -118,10 +80,8 @@ def _child(src: Path, dest_dir: Path, limits: Limits) -> dict:
         return {"ok": True, "format": kind, "file": target.name, "report": report}
     except DatasetTooLarge as exc:
         return {"ok": False, "error": f"{exc} ({LIMIT_SETTINGS[exc.limit]})"}
-    except (Invalid, DatasetError) as exc:
+    except DatasetError as exc:
         return {"ok": False, "error": str(exc)}
-    except zipfile.BadZipFile as exc:
-        return {"ok": False, "error": f"file: broken zip ({exc})"}
     except MemoryError:
         return {"ok": False, "error": "file: too large to validate within the validator's memory limit"}
 
@@ -135,7 +95,7 @@ def _forkserver():
     global _context
     if _context is None:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["app.validate", "app.minari", "drop_engine.data"])
+        ctx.set_forkserver_preload(["app.validate", "drop_engine.data", "drop_engine.minari"])
         _context = ctx
     return _context
 

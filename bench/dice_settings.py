@@ -18,7 +18,8 @@ import numpy as np
 import torch
 
 from drop_engine.dice import GradientDice
-from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.replay_buffer import ReplayBuffer
+from drop_engine.rollout import model_rollout
 from penalty_vs_error import correlations, penalties_and_error, restore
 
 DEFAULT_SETTINGS = ["", "lam=1", "lr=1e-3", "lam=1,lr=1e-3", "lam=1,lr=1e-3,discount=sac"]

@@ -23,8 +23,9 @@ from drop_engine.collect import collect_transitions, random_policy
 from drop_engine.config import build_config
 from drop_engine.data import Dataset, from_arrays, load_dataset
 from drop_engine.dynamics import GaussianEnsemble, train_dynamics
-from drop_engine.evaluate import evaluate
-from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.evaluation import evaluate
+from drop_engine.replay_buffer import ReplayBuffer
+from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer
 
 
@@ -78,7 +79,8 @@ def make_dataset(path: str | None, n: int) -> Dataset:
 
 def ready_trainer(data: Dataset, algorithm: str, device: str, out: Path) -> Trainer:
     """A cpu-preset trainer with a briefly trained ensemble and a filled model buffer."""
-    cfg = build_config(algorithm, "hopper", "cpu", task="medium", overrides={"dynamics.max_epochs": 1}, device=device)
+    cfg = build_config(algorithm, env="hopper", preset="cpu", task="medium", overrides={"dynamics.max_epochs": 1},
+                       device=device)
     trainer = Trainer(data, cfg, out)
     trainer.train_dynamics()
     trainer._start_epoch()

@@ -52,7 +52,8 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
         record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": []}
     else:
         overrides = dict(kv.split("=", 1) for kv in args.set)
-        cfg = build_config(algorithm, env, args.preset, task=kind, overrides=overrides, seed=seed, device=args.device)
+        cfg = build_config(algorithm, env=env, preset=args.preset, task=kind, overrides=overrides, seed=seed,
+                           device=args.device)
         result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")

@@ -22,7 +22,8 @@ from drop_engine.checkpoint import load_latest
 from drop_engine.config import TrainConfig
 from drop_engine.data import load_dataset
 from drop_engine.penalties import ratio_penalty, uncertainty_penalty
-from drop_engine.rollout import ReplayBuffer, model_rollout
+from drop_engine.replay_buffer import ReplayBuffer
+from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer
 from drop_engine.true_dynamics import true_step
 
@@ -46,7 +47,7 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
     o, a = torch.as_tensor(obs), torch.as_tensor(act)
     mean, logvar = model(o, a)
     elite_mean = mean[model.elites].mean(0).numpy()
-    true_r, true_next = true_step(cfg.env, obs, act, qpos, qvel, cfg.env_version)
+    true_r, true_next = true_step(cfg.env, obs, act, qpos, qvel, trainer.env_version)
     truth = np.concatenate([true_r[:, None], true_next - obs], 1)
     # The unclamped g(tau): the figure compares how each penalty ranks (s, a), whatever the run's bonus setting.
     unclamped = cfg.penalty.model_copy(update={"bonus": True})

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from .data import Dataset, Normalizer
-from .evaluate import Evaluation, evaluate
+from .evaluation import Evaluation, evaluate
 from .nn import adam
 from .sac import Actor
 

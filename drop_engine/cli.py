@@ -6,7 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-from .config import PRESETS, ConfigError, build_config
+from .config import PRESETS, build_config
+from .errors import ConfigError
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
 
@@ -36,7 +37,7 @@ def write_curve(run_dir: Path) -> Path:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from .callbacks import CallbackList, progress_reporter
-    from .data import DatasetError
+    from .errors import DatasetError
     from .run_log import RunLog
     from .trainer import train
 
@@ -44,7 +45,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides = dict(args.set or [])
         if args.threads:
             overrides["threads"] = args.threads
-        config = build_config(args.algorithm, args.env, args.preset, args.task, overrides, args.seed, args.device)
+        config = build_config(args.algorithm, env=args.env, preset=args.preset, task=args.task, overrides=overrides,
+                              seed=args.seed, device=args.device)
     except ConfigError as exc:
         print(f"drop train: {exc}", file=sys.stderr)
         return 2
@@ -85,7 +87,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate
+    from .evaluation import evaluate
     from .export import load_policy
 
     result = evaluate(load_policy(args.policy), args.env, args.episodes, args.seed, args.env_version)
@@ -150,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a policy on a dataset file")
-    p.add_argument("--dataset", required=True, help="D4RL-layout .hdf5 or .npz")
+    p.add_argument("--dataset", required=True, help="D4RL-layout .hdf5 or .npz, or a Minari dataset's zip")
     p.add_argument("--env", default="hopper", help="hopper | walker2d | halfcheetah")
     p.add_argument("--algorithm", default="drop", choices=["drop", "mopo", "mbpo"])
     p.add_argument("--preset", default="cpu", choices=PRESETS)

@@ -11,13 +11,12 @@ from typing import Annotated, Any, Literal, Mapping
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .envs import EnvVersion
+from .errors import ConfigError
+
 Algorithm = Literal["drop", "mopo", "mbpo"]
 PenaltyFn = Literal["log", "tanh", "tanh_shift"]
 PRESETS = ("paper", "cpu", "smoke")
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be built; the message names the field."""
 
 
 class _Strict(BaseModel):
@@ -123,7 +122,9 @@ class PenaltyConfig(_Strict):
 class TrainConfig(_Strict):
     algorithm: Algorithm = "drop"
     env: str = "hopper"
-    env_version: Literal["v4", "v5"] = "v4"
+    env_version: EnvVersion | None = Field(None, description="the gymnasium env version evaluations run in; default: "
+                                           "the version of the env id the dataset records (Minari's MuJoCo datasets "
+                                           "record v5), else v4")
     task: str | None = Field(None, description="dataset kind, e.g. 'medium', selects the per-dataset settings")
     preset: Literal["paper", "cpu", "smoke"] = "cpu"
     seed: int = Field(0, ge=0, lt=2**32)
@@ -247,6 +248,7 @@ def _nest(overrides: Mapping[str, Any]) -> dict:
 
 def build_config(
     algorithm: str = "drop",
+    *,
     env: str = "hopper",
     preset: str = "cpu",
     task: str | None = None,

@@ -1,4 +1,4 @@
-"""Offline datasets: load D4RL-layout HDF5 or .npz, validate, describe, and hand tensors to the trainer.
+"""Offline datasets: load any format `formats` reads, validate, describe, and hand tensors to the trainer.
 
 Every problem with a file is one `DatasetError` whose message names the key and what is wrong with it, because the
 service shows that message to the person who uploaded the file. `scan` checks a file a block of rows at a time for
@@ -8,20 +8,18 @@ from __future__ import annotations
 
 import hashlib
 import math
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import Mapping
 
 import numpy as np
 
 from .atomic import atomic_path
-from .data_rows import (OPTIONAL, REQUIRED, Block, DatasetError, DatasetLimits, Layout, Rows, check_rows, layout,
-                        require_rows)
-from .envs import envs_matching, get_env
-
-BLOCK_BYTES = 16 << 20  # file bytes `scan` reads at once
+from .data_rows import BLOCK_BYTES, Block, DatasetLimits, Layout, Rows, check_rows, layout, require_rows
+from .envs import EnvVersion, envs_matching, get_env, gym_version
+from .errors import DatasetError
+from .formats import open_arrays
 
 
 @dataclass
@@ -45,6 +43,11 @@ class Dataset:
     @property
     def act_dim(self) -> int:
         return self.actions.shape[1]
+
+    @property
+    def env_version(self) -> EnvVersion | None:
+        """The version of the gymnasium id the file records, e.g. v5 for 'Hopper-v5'; None without one."""
+        return gym_version(_recorded_env(self.attrs))
 
     @property
     def episodes(self) -> int:
@@ -146,11 +149,17 @@ class _Tally:
         )
 
 
+def _recorded_env(attrs: Mapping) -> str:
+    """The env the file says it was recorded in ('' if none): D4RL-style files and Minari's converted ones name its
+    gymnasium id in `env_name`."""
+    return str(attrs.get("env_name") or attrs.get("env") or "")
+
+
 def _env(attrs: Mapping, obs_dim: int, act_dim: int) -> tuple[str | None, list[str], list[str]]:
     """(the env the dataset matches, every env of its dims, a warning). The env the file records is believed only if
     its dims agree; otherwise a job would be refused for the recorded env, so the dims choose, as without a record."""
     candidates = envs_matching(obs_dim, act_dim)
-    recorded = str(attrs.get("env_name") or attrs.get("env") or "")
+    recorded = _recorded_env(attrs)
     try:
         spec = get_env(recorded) if recorded else None
     except KeyError:
@@ -164,29 +173,6 @@ def _env(attrs: Mapping, obs_dim: int, act_dim: int) -> tuple[str | None, list[s
     return env, candidates, [
         f"env_name: the file says {recorded}, whose (obs, act) dims are ({spec.obs_dim}, {spec.act_dim}), but the data "
         f"has ({obs_dim}, {act_dim}); {matched}"]
-
-
-@contextmanager
-def _arrays(path: Path) -> Iterator[tuple[dict[str, Rows], dict]]:
-    """The file's arrays, unread (their rows are read when sliced), and its attributes."""
-    if path.suffix == ".npz":
-        from .npz_rows import open_npz
-
-        with open_npz(path, REQUIRED + OPTIONAL) as arrays:
-            yield arrays, {}
-        return
-    import h5py
-
-    from .safe_hdf5 import SafeHDF5
-
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as exc:
-        raise DatasetError(f"file: not a readable HDF5 file ({exc})") from None
-    with handle:
-        reader = SafeHDF5(handle)
-        arrays = {key: reader.array(key) for key in REQUIRED + OPTIONAL if key in handle}
-        yield arrays, {k: (v.decode() if isinstance(v, bytes) else v) for k, v in handle.attrs.items()}
 
 
 def from_arrays(arrays: Mapping[str, Rows], attrs: dict | None = None, env: str | None = None) -> Dataset:
@@ -208,19 +194,15 @@ def from_arrays(arrays: Mapping[str, Rows], attrs: dict | None = None, env: str 
 
 
 def load_dataset(path: str | Path, env: str | None = None) -> Dataset:
-    """Load and validate an HDF5 (.hdf5/.h5) or .npz dataset."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"file: {path} does not exist")
-    with _arrays(path) as (arrays, attrs):
+    """Load and validate a dataset: D4RL-layout HDF5, .npz, or a Minari dataset zipped as a directory."""
+    with open_arrays(path) as (arrays, attrs):
         return from_arrays(arrays, attrs, env)
 
 
 def scan(path: str | Path, limits: DatasetLimits = DatasetLimits(), block_bytes: int = BLOCK_BYTES) -> DatasetReport:
     """Validate a file and report on it as `describe(load_dataset(path))` would, holding one block of rows at a time;
     a file that declares more than `limits` is refused (DatasetTooLarge) before any row is read."""
-    path = Path(path)
-    with _arrays(path) as (arrays, attrs):
+    with open_arrays(path, limits) as (arrays, attrs):
         lay = layout(arrays, limits)
         row_bytes = sum(arrays[k].dtype.itemsize * math.prod(arrays[k].shape[1:]) for k in lay.keys)
         step = max(1, block_bytes // row_bytes)

@@ -12,22 +12,13 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from .errors import DatasetError, DatasetTooLarge
+
 REQUIRED = ("observations", "actions", "rewards", "terminals")
 OPTIONAL = ("next_observations", "timeouts")
 FLAGS = ("terminals", "timeouts")
 FLOAT = 4  # bytes of a float32
-
-
-class DatasetError(ValueError):
-    """A dataset that cannot be used; the message says which key and why."""
-
-
-class DatasetTooLarge(DatasetError):
-    """A dataset that declares more rows or decoded bytes than the caller's limits; `limit` says which."""
-
-    def __init__(self, message: str, limit: str):
-        super().__init__(message)
-        self.limit = limit
+BLOCK_BYTES = 16 << 20  # file bytes read at once
 
 
 class Rows(Protocol):
@@ -60,6 +51,7 @@ class DatasetLimits:
 
     rows: int | None = None
     decoded_bytes: int | None = None
+    zip_bytes: int | None = None  # a zip's entries (an .npz, a Minari dataset), expanded
 
     def check_rows(self, where: str, shape: tuple[int, ...]) -> None:
         if self.rows is not None and shape[0] > self.rows:
@@ -71,6 +63,11 @@ class DatasetLimits:
             raise DatasetTooLarge(f"{where}: {shape.rows} rows of {shape.row_floats * FLOAT} bytes decode to "
                                   f"{shape.decoded_bytes} bytes, over the limit of {self.decoded_bytes} bytes per "
                                   "dataset", "decoded_bytes")
+
+    def check_zip(self, total: int) -> None:
+        if self.zip_bytes is not None and total > self.zip_bytes:
+            raise DatasetTooLarge(f"zip: its entries expand to {total} bytes, over the limit of {self.zip_bytes}",
+                                  "zip_bytes")
 
 
 @dataclass(frozen=True)

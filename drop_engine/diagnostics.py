@@ -9,7 +9,7 @@ import torch
 from .dynamics import GaussianEnsemble
 from .nn import in_row_chunks
 from .penalties import uncertainty_penalty
-from .rollout import ReplayBuffer
+from .replay_buffer import ReplayBuffer
 
 SAMPLE = 2048
 

@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, get_args
 
 if TYPE_CHECKING:
     from .termination import TerminationFn
+
+EnvVersion = Literal["v4", "v5"]
+VERSIONS: tuple[EnvVersion, ...] = get_args(EnvVersion)
+DEFAULT_VERSION: EnvVersion = "v4"  # D4RL's dynamics
+
 
 @dataclass(frozen=True)
 class EnvSpec:
@@ -29,8 +34,8 @@ class EnvSpec:
 
         return BY_ENV[self.name]
 
-    def gym_id(self, version: str = "v4") -> str:
-        if version not in ("v4", "v5"):
+    def gym_id(self, version: str = DEFAULT_VERSION) -> str:
+        if version not in VERSIONS:
             raise ValueError(f"unknown env version {version!r}; use 'v4' or 'v5'")
         return f"{self.gym_name}-{version}"
 
@@ -65,11 +70,17 @@ def termination_fn(name: str) -> TerminationFn:
         return never_done
 
 
+def gym_version(gym_id: str) -> EnvVersion | None:
+    """The version of a gymnasium id ('Hopper-v5' -> 'v5'), if it is one drop-rl makes; None for any other id."""
+    name, _, version = gym_id.rpartition("-")
+    return next((known for known in VERSIONS if name and known == version), None)
+
+
 def envs_matching(obs_dim: int, act_dim: int) -> list[str]:
     return [spec.name for spec in ENVS.values() if (spec.obs_dim, spec.act_dim) == (obs_dim, act_dim)]
 
 
-def make_env(name: str, version: str = "v4"):
+def make_env(name: str, version: str = DEFAULT_VERSION):
     """A real gymnasium MuJoCo env for `name`."""
     import gymnasium as gym
 

@@ -15,7 +15,7 @@ from typing import IO, Iterator
 import numpy as np
 from numpy.lib import format as npy
 
-from .data_rows import DatasetError
+from .errors import DatasetError
 
 _HEADERS = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}
 

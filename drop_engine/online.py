@@ -23,8 +23,8 @@ import torch
 from .atomic import save_durably
 from .config import SACConfig
 from .envs import get_env, make_env
-from .evaluate import evaluate
-from .rollout import ReplayBuffer
+from .evaluation import evaluate
+from .replay_buffer import ReplayBuffer
 from .sac import SAC, Actor
 
 CHECKPOINT_FORMAT = 1

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 from h5py import h5d, h5l
 
-from .data_rows import DatasetError
+from .errors import DatasetError
 
 # gzip, shuffle and fletcher32 are built into HDF5; lzf is built into h5py, which wrote many existing files.
 ALLOWED_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32", 32000: "lzf"}

@@ -32,12 +32,13 @@ from .diagnostics import exploitation_stats
 from .dice import GradientDice
 from .divergence import check_finite
 from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
-from .envs import get_env
-from .evaluate import evaluate
+from .envs import DEFAULT_VERSION, get_env
+from .evaluation import evaluate
 from .export import export_policy
 from .model_cache import ModelCache, model_key
 from .nn import in_row_chunks
-from .rollout import ReplayBuffer, model_rollout
+from .replay_buffer import ReplayBuffer
+from .rollout import model_rollout
 from .sac import SAC, Actor
 from .scores import Which, summarize
 from .stopping import Stopped, check
@@ -98,6 +99,7 @@ class Trainer:
             torch.set_num_threads(config.threads)
         self.spec = get_env(config.env)
         self.data = dataset if isinstance(dataset, Dataset) else load_dataset(dataset, env=config.env)
+        self.env_version = config.env_version or self.data.env_version or DEFAULT_VERSION  # the config's wins
         self.rng = seed_everything(config.seed)
         obs_dim, act_dim = self.data.obs_dim, self.data.act_dim
 
@@ -296,7 +298,7 @@ class Trainer:
         start = time.perf_counter()
         try:
             result = evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + epoch,
-                              version=self.cfg.env_version, should_stop=self.cb.should_stop)
+                              version=self.env_version, should_stop=self.cb.should_stop)
         finally:
             self.timings["evaluate"] += time.perf_counter() - start
         record = {"epoch": epoch, "step": self.global_step, "return": result.mean_return,
@@ -434,7 +436,7 @@ class Trainer:
     def _export(self, which: Which, actor: Actor, epoch: int, score: float | None, extra: dict) -> dict[str, str]:
         metadata = {
             "which": which, "epoch": epoch, "normalized_score": score, **extra,
-            "env": self.cfg.env, "gym_id": self.spec.gym_id(self.cfg.env_version),
+            "env": self.cfg.env, "gym_id": self.spec.gym_id(self.env_version),
             "obs_dim": self.data.obs_dim, "act_dim": self.data.act_dim, "algorithm": self.cfg.algorithm,
             "config": self.cfg.model_dump(mode="json"), "epochs": self.epoch, **asdict(summarize(self._scores())),
         }

@@ -57,7 +57,8 @@ def test_onnx_copy_matches_torchscript(tmp_path, hopper_dataset):
     from drop_engine.export import export_onnx, load_policy
     from drop_engine.trainer import train
 
-    result = train(hopper_dataset, build_config("mbpo", "hopper", "smoke", overrides={"epochs": 1}), tmp_path)
+    config = build_config("mbpo", env="hopper", preset="smoke", overrides={"epochs": 1})
+    result = train(hopper_dataset, config, tmp_path)
     onnx_path = export_onnx(result.policy["last"]["torchscript"], 11, tmp_path / "policy.onnx")
     obs = hopper_dataset.observations[:7]
     session = onnxruntime.InferenceSession(str(onnx_path))

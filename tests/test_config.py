@@ -1,20 +1,21 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import PRESETS, ConfigError, TrainConfig, build_config
+from drop_engine.config import PRESETS, TrainConfig, build_config
+from drop_engine.errors import ConfigError
 
 
 def test_paper_preset_uses_official_dataset_settings():
-    cfg = build_config("drop", "walker2d", "paper", task="medium-replay")
+    cfg = build_config("drop", env="walker2d", preset="paper", task="medium-replay")
     assert cfg.epochs == 3000 and cfg.rollout.horizon == 1
     assert cfg.penalty.eta == 2.0 and cfg.penalty.clip == (0.01, 50.0)
     assert cfg.dice.steps_per_epoch == 600 and cfg.sac.target_entropy == -3.0
-    mopo = build_config("mopo", "halfcheetah", "paper", task="medium")
+    mopo = build_config("mopo", env="halfcheetah", preset="paper", task="medium")
     assert mopo.horizon == 1 and mopo.penalty.mopo_lambda == 1.0
 
 
 def test_overrides_apply_last_and_nest():
-    cfg = build_config("drop", "hopper", "cpu", task="medium", overrides={"dice.lr": 1e-3, "epochs": 7,
+    cfg = build_config("drop", env="hopper", preset="cpu", task="medium", overrides={"dice.lr": 1e-3, "epochs": 7,
                                                                           "penalty": {"g": "tanh"}})
     assert cfg.dice.lr == 1e-3 and cfg.epochs == 7 and cfg.penalty.g == "tanh" and cfg.penalty.eta == 5.0
 
@@ -28,41 +29,41 @@ def test_overrides_apply_last_and_nest():
 ])
 def test_bad_overrides_name_the_field(overrides, message):
     with pytest.raises(ConfigError) as info:
-        build_config("drop", "hopper", "cpu", overrides=overrides)
+        build_config("drop", env="hopper", preset="cpu", overrides=overrides)
     assert message in str(info.value)
 
 
 def test_unknown_algorithm_and_preset():
     with pytest.raises(ConfigError, match="algorithm"):
-        build_config("cql", "hopper", "cpu")
+        build_config("cql", env="hopper", preset="cpu")
     with pytest.raises(ConfigError, match="unknown preset 'huge'"):
-        build_config("drop", "hopper", "huge")
+        build_config("drop", env="hopper", preset="huge")
 
 
 def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
-    paper = build_config("drop", "hopper", "paper", task="medium")
+    paper = build_config("drop", env="hopper", preset="paper", task="medium")
     assert paper.sac.bc_weight == 0 and not paper.dice.positive and paper.penalty.bonus
     assert paper.dice_discount == paper.sac.gamma
-    cpu = {task: build_config(algo, "hopper", "cpu", task=task)
+    cpu = {task: build_config(algo, env="hopper", preset="cpu", task=task)
            for algo in ("drop", "mopo", "mbpo") for task in ("medium", "medium-replay")}
     assert cpu["medium"].sac.bc_weight > cpu["medium-replay"].sac.bc_weight > 0
-    drop = build_config("drop", "hopper", "cpu", task="medium")
+    drop = build_config("drop", env="hopper", preset="cpu", task="medium")
     assert drop.dice.positive and not drop.penalty.bonus and drop.eval_episodes == 10
     assert drop.dynamics.max_seconds is None and drop.dynamics.max_epochs
     assert drop.dice_discount == pytest.approx(4 / 6)  # h = 5: mean step 2, as uniform over the 5 rollout steps
-    assert build_config("drop", "walker2d", "cpu", task="medium-replay").dice_discount == 0.0  # h = 1
+    assert build_config("drop", env="walker2d", preset="cpu", task="medium-replay").dice_discount == 0.0  # h = 1
 
 
 def test_dice_discount_override_is_checked():
-    assert build_config("drop", "hopper", "cpu", overrides={"dice.discount": 0.5}).dice_discount == 0.5
+    assert build_config("drop", env="hopper", preset="cpu", overrides={"dice.discount": 0.5}).dice_discount == 0.5
     with pytest.raises(ConfigError, match="dice.discount: Input should be less than 1"):
-        build_config("drop", "hopper", "cpu", overrides={"dice.discount": 1.5})
+        build_config("drop", env="hopper", preset="cpu", overrides={"dice.discount": 1.5})
 
 
 @pytest.mark.parametrize("preset", PRESETS)
 def test_presets_never_cap_dynamics_by_wall_clock(preset):
     """A time cap would make the model, and so the whole run, depend on how busy the machine is."""
-    dynamics = build_config("drop", "hopper", preset).dynamics
+    dynamics = build_config("drop", env="hopper", preset=preset).dynamics
     assert dynamics.max_seconds is None
     assert dynamics.max_epochs is not None or preset == "paper"
 
@@ -104,7 +105,7 @@ def test_every_number_and_tuple_of_every_config_is_bounded_above():
 ])
 def test_absurd_values_are_refused_by_name(overrides, message):
     with pytest.raises(ConfigError) as info:
-        build_config("drop", "hopper", "cpu", overrides=overrides)
+        build_config("drop", env="hopper", preset="cpu", overrides=overrides)
     assert message in str(info.value)
 
 
@@ -122,5 +123,5 @@ NAN, INF = float("nan"), float("inf")
 ])
 def test_non_finite_numbers_are_refused_by_name(overrides, field):
     with pytest.raises(ConfigError) as info:
-        build_config("drop", "hopper", "cpu", overrides=overrides)
+        build_config("drop", env="hopper", preset="cpu", overrides=overrides)
     assert str(info.value).startswith(f"{field}: Input should be a finite number")

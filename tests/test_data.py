@@ -3,8 +3,9 @@ import h5py
 import numpy as np
 import pytest
 
-from drop_engine.data import DatasetError, describe, from_arrays, load_dataset, save_hdf5, scan
-from drop_engine.data_rows import DatasetLimits, DatasetTooLarge
+from drop_engine.data import describe, from_arrays, load_dataset, save_hdf5, scan
+from drop_engine.data_rows import DatasetLimits
+from drop_engine.errors import DatasetError, DatasetTooLarge
 
 
 def _write(path, arrays):

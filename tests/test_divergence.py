@@ -29,8 +29,9 @@ class Metrics(Callback):
 
 def _diverged(tmp_path, dataset, overrides: dict) -> TrainingDiverged:
     seen = Metrics()
+    config = build_config("drop", env="hopper", preset="smoke", task="medium", overrides=overrides)
     with pytest.raises(TrainingDiverged) as caught:
-        train(dataset, build_config("drop", "hopper", "smoke", task="medium", overrides=overrides), tmp_path, seen)
+        train(dataset, config, tmp_path, seen)
     assert all(math.isfinite(v) for v in seen.values)
     return caught.value
 

@@ -49,7 +49,8 @@ class _Rows(Callback):
                                                            "dice.steps_per_epoch": 0}])
 def test_counts_match_a_real_run(tmp_path, hopper_dataset, algorithm, overrides):
     """Networks as built and metric rows as reported; patience past max_epochs fixes the dynamics epochs."""
-    cfg = build_config(algorithm, "hopper", "smoke", task="medium", overrides={"dynamics.patience": 10, **overrides})
+    cfg = build_config(algorithm, env="hopper", preset="smoke", task="medium",
+                       overrides={"dynamics.patience": 10, **overrides})
     shape = DataShape(len(hopper_dataset), hopper_dataset.obs_dim, hopper_dataset.act_dim)
     rows = _Rows()
     trainer = Trainer(hopper_dataset, cfg, tmp_path, rows)

@@ -18,7 +18,7 @@ def _history(out):
 
 
 def test_run_log_is_continuous_across_stop_and_lost_writes(tmp_path, hopper_dataset):
-    cfg = build_config("drop", "hopper", "smoke", task="medium", overrides={"epochs": 3})
+    cfg = build_config("drop", env="hopper", preset="smoke", task="medium", overrides={"epochs": 3})
     whole = tmp_path / "whole"
     Trainer(hopper_dataset, cfg, whole, RunLog(whole, cfg.steps_per_epoch)).run()
 

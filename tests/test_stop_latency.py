@@ -47,7 +47,7 @@ def _stopped_soon(stop: StopInside, run) -> TrainResult:
 
 
 def _config(env: str = "hopper", **overrides):
-    return build_config("drop", env, "smoke", task="medium", overrides=overrides)
+    return build_config("drop", env=env, preset="smoke", task="medium", overrides=overrides)
 
 
 def _assert_checkpoint_at(result: TrainResult, out, position: tuple[int, int, bool]) -> dict:

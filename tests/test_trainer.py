@@ -15,8 +15,9 @@ from drop_engine import trainer as trainer_module
 from drop_engine.callbacks import Callback
 from drop_engine.checkpoint import checkpoint_name, list_checkpoints, load_latest
 from drop_engine.config import build_config
+from drop_engine.data import from_arrays
 from drop_engine.dynamics import train_dynamics
-from drop_engine.evaluate import evaluate
+from drop_engine.evaluation import Evaluation, evaluate
 from drop_engine.export import load_policy
 from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer, train
@@ -67,7 +68,7 @@ def _untimed(recorder):
 
 
 def _config(algorithm, **overrides):
-    return build_config(algorithm, "hopper", "smoke", task="medium", overrides=overrides)
+    return build_config(algorithm, env="hopper", preset="smoke", task="medium", overrides=overrides)
 
 
 @pytest.mark.parametrize("algorithm", ["drop", "mopo", "mbpo"])
@@ -104,6 +105,25 @@ def test_smoke_run_writes_checkpoints_metrics_and_policy(tmp_path, hopper_datase
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+@pytest.mark.parametrize("recorded, override, version", [
+    ("Hopper-v5", None, "v5"),  # as Minari's MuJoCo datasets record it
+    ("Hopper-v5", "v4", "v4"),  # the config's choice wins
+    ("Hopper-v4", None, "v4"),
+    (None, "v5", "v5"),
+    (None, None, "v4"),  # no record: D4RL's dynamics
+    ("hopper-medium-v2", None, "v4"),  # a version no drop-rl env has
+])
+def test_evaluations_run_in_the_env_version_the_dataset_records(tmp_path, hopper_arrays, monkeypatch, recorded,
+                                                                 override, version):
+    asked = []
+    monkeypatch.setattr(trainer_module, "evaluate", lambda *a, version, **k: asked.append(version) or Evaluation(
+        0.0, 0.0, 0.0, [0.0], [1]))
+    data = from_arrays(hopper_arrays, {"env_name": recorded} if recorded else {}, env="hopper")
+    trainer = Trainer(data, _config("mbpo", **({"env_version": override} if override else {})), tmp_path)
+    trainer.evaluate_now(0)
+    assert asked == [version]
 
 
 def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_dataset, monkeypatch):

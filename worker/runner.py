@@ -177,8 +177,8 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     from celery.exceptions import SoftTimeLimitExceeded
 
     from drop_engine.config import TrainConfig
-    from drop_engine.data import DatasetError
     from drop_engine.divergence import TrainingDiverged
+    from drop_engine.errors import DatasetError
     from drop_engine.trainer import train
 
     job_id = job.id

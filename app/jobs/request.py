@@ -58,8 +58,9 @@ def _invalid(code: str, detail: str, field: str) -> Problem:
 
 def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, dict]:
     """(env name, config as JSON) for this request on this dataset, within the server's limits on a job."""
-    from drop_engine.config import PRESETS, ConfigError, build_config
+    from drop_engine.config import PRESETS, build_config
     from drop_engine.envs import get_env
+    from drop_engine.errors import ConfigError
     from drop_engine.resources import DataShape
 
     if req.algorithm not in ALGORITHMS:
@@ -84,7 +85,8 @@ def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, d
         raise _invalid("invalid_override", f"overrides: {', '.join(bad)} cannot be overridden; use the job fields",
                        "overrides")
     try:
-        config = build_config(req.algorithm, spec.name, req.preset, req.task, req.overrides, req.seed, "cpu")
+        config = build_config(req.algorithm, env=spec.name, preset=req.preset, task=req.task, overrides=req.overrides,
+                              seed=req.seed, device="cpu")
     except ConfigError as exc:
         message = str(exc)
         field = message.split(":", 1)[0] if ":" in message else "overrides"

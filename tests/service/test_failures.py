@@ -56,7 +56,8 @@ def test_database_error_message_shows_no_sql(app, settings, alice, hopper_file, 
         dataset = s.get(Dataset, ds["id"])
         job = Job(id=new_id("job"), owner_id=dataset.owner_id, dataset_id=ds["id"], algorithm="drop", env="hopper",
                   preset="smoke", overrides=RUNAWAY_ALPHA, seed=0, status="queued", max_attempts=3, max_runtime_s=600,
-                  config=build_config("drop", "hopper", "smoke", overrides=RUNAWAY_ALPHA).model_dump(mode="json"))
+                  config=build_config("drop", env="hopper", preset="smoke",
+                                      overrides=RUNAWAY_ALPHA).model_dump(mode="json"))
         s.add(job)
     assert run_job(settings, sessions, job.id) == "failed"  # in this process, so the check can be switched off
     got = alice.get(f"/v1/jobs/{job.id}").json()

@@ -133,4 +133,4 @@ def test_default_limits_admit_every_preset_on_a_large_dataset(preset):
     for algorithm in ("drop", "mopo", "mbpo"):
         for env in ("hopper", "walker2d", "halfcheetah"):
             for task in ("random", "medium", "medium-replay", "medium-expert"):
-                check(build_config(algorithm, env, preset, task), shape, Settings())
+                check(build_config(algorithm, env=env, preset=preset, task=task), shape, Settings())

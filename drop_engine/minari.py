@@ -1,7 +1,8 @@
 """Convert a Minari dataset (a zip of its directory) to the D4RL layout, a block of rows at a time.
 
-Runs in the validator's child. What the episodes declare is checked against the dataset limits before any row is
-read, and rows are copied a block at a time, so a conversion holds one block whatever the dataset's size.
+What the episodes declare is checked against the caller's limits before any row is read, and rows are copied a block
+at a time, so a conversion holds one block whatever the dataset's size: the service runs it on uploads in a child with
+a memory limit. The env id in the dataset's metadata is kept as the `env_name` attribute, which names the env version.
 """
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from drop_engine.data import BLOCK_BYTES
-from drop_engine.data_rows import DataShape, DatasetError, DatasetLimits, read_rows
-from drop_engine.safe_hdf5 import SafeHDF5
+from .data_rows import BLOCK_BYTES, DataShape, DatasetLimits, read_rows
+from .errors import DatasetError
+from .safe_hdf5 import SafeHDF5
+from .safe_zip import open_zip
 
 EPISODE_KEYS = ("observations", "actions", "rewards", "terminations", "truncations")
 
@@ -101,9 +103,11 @@ def convert(src: Path, dest: Path, limits: DatasetLimits) -> None:
     timeouts, observations[:-1] and [1:] of each episode as observations and next observations)."""
     raw = dest.with_name("minari_main.hdf5")
     try:
-        with zipfile.ZipFile(src) as zf:
-            main = next(n for n in zf.namelist() if n.endswith("main_data.hdf5"))
-            # zipfile stops at the entry's declared size (and then fails its CRC), which the caller has bounded.
+        with open_zip(src, limits) as zf:
+            main = next((n for n in zf.namelist() if n.endswith("main_data.hdf5")), None)
+            if main is None:
+                raise DatasetError("file: not a Minari dataset (no data/main_data.hdf5 in the zip)")
+            # zipfile stops at the entry's declared size (and then fails its CRC), which `limits` has bounded.
             with zf.open(main) as fin, raw.open("wb") as fout:
                 shutil.copyfileobj(fin, fout, 1 << 20)
             env_id = _env_id(zf)
