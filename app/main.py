@@ -26,7 +26,7 @@ from .jobs.metrics import JobMetrics
 from .observability import health
 from .observability.observe import ObserveRequests
 from .serving.procs import supervised
-from .validate import Validator
+from .datasets.validate import Validator
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20

@@ -19,8 +19,8 @@ from ..core.problems import Problem
 from ..observability.metrics import UPLOAD_BYTES, VALIDATION_SECONDS
 from ..owners import quotas
 from ..owners.lock import lock_owner
-from ..upload import Upload, receive
-from ..validate import Invalid
+from .upload import Upload, receive
+from .validate import Invalid
 from .schemas import dataset as dataset_dict
 
 

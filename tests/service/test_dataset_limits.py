@@ -68,10 +68,10 @@ def test_a_lazy_file_counts_its_decoded_size_toward_the_quota(settings, tmp_path
 
 def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):
     """Three uploads at once with one validator slot: each validation runs alone, and all three are accepted."""
-    import app.validate
+    import app.datasets.validate as validate
 
     running, peak, lock = 0, 0, threading.Lock()
-    run = app.validate._run
+    run = validate._run
 
     def counted(*args):
         nonlocal running, peak
@@ -85,7 +85,7 @@ def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):
             with lock:
                 running -= 1
 
-    monkeypatch.setattr(app.validate, "_run", counted)
+    monkeypatch.setattr(validate, "_run", counted)
     with private_api(settings, max_concurrent_validations=1) as (app_, client):
         async def upload_three() -> list[httpx.Response]:
             transport = httpx.ASGITransport(app=app_)

@@ -164,7 +164,7 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
     test_hostile_uploads.)"""
     import asyncio
 
-    from app.validate import Invalid, Validator
+    from app.datasets.validate import Invalid, Validator
     from kernel.settings import Settings
 
     rows = 16_000_000

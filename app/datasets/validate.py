@@ -95,7 +95,7 @@ def _forkserver():
     global _context
     if _context is None:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["app.validate", "drop_engine.data", "drop_engine.minari"])
+        ctx.set_forkserver_preload(["app.datasets.validate", "drop_engine.data", "drop_engine.minari"])
         _context = ctx
     return _context
 

@@ -13,7 +13,7 @@ from typing import Callable
 from fastapi import Request
 from python_multipart.multipart import MultipartParser, parse_options_header
 
-from .core.problems import Problem
+from ..core.problems import Problem
 
 MULTIPART_SLACK = 64 * 1024  # headers and boundaries around the file part
 CONTROL_CHARS = re.compile(r"[\x00-\x1f\x7f]")
