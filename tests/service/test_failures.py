@@ -2,8 +2,6 @@
 diverging run fails with `training_diverged`, and a database error's message never shows its SQL."""
 from __future__ import annotations
 
-from pathlib import Path
-
 from drop_engine.config import build_config
 from kernel.ids import new_id
 from kernel.models import Dataset, Job
@@ -33,8 +31,11 @@ def test_failed_job_keeps_traceback_out_of_the_api(app, settings, alice, hopper_
     events = alice.get(f"/v1/jobs/{job.id}/events").json()["data"]
     assert [e["type"] for e in events][-2:] == ["status", "traceback"]
     assert events[-1]["message"].startswith("Traceback")
-    assert run_job(settings, sessions, job.id) == "skipped"  # a redelivered message does nothing
-    assert not Path(tmp_path / "gone.hdf5").exists()
+    assert got["attempts"] == 1
+    # A redelivered message does nothing: no second attempt, no new event, the error and timestamps as they were.
+    assert run_job(settings, sessions, job.id) == "skipped"
+    assert alice.get(f"/v1/jobs/{job.id}").json() == got
+    assert alice.get(f"/v1/jobs/{job.id}/events").json()["data"] == events
 
 
 def test_diverging_job_fails_with_training_diverged(alice, worker, hopper_file):
