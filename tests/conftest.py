@@ -1,22 +1,17 @@
-"""Shared fixtures: small real datasets made in the real MuJoCo env."""
+"""For every test: torch on one thread, and the `service` marker on the tests under tests/service/."""
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
+
 import pytest
 import torch
 
-from drop_engine.collect import collect_transitions, random_policy
-from drop_engine.data import Dataset, from_arrays
+SERVICE_TESTS = Path(__file__).parent / "service"
 
 torch.set_num_threads(1)
 
 
-@pytest.fixture(scope="session")
-def hopper_arrays() -> dict[str, np.ndarray]:
-    """1,500 random-policy hopper transitions (many short episodes, so terminals are plentiful)."""
-    return collect_transitions("hopper", random_policy(3, seed=0), 1500, seed=0)
-
-
-@pytest.fixture(scope="session")
-def hopper_dataset(hopper_arrays) -> Dataset:
-    return from_arrays(hopper_arrays, {"env_name": "Hopper-v4"}, env="hopper")
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if SERVICE_TESTS in item.path.parents:
+            item.add_marker(pytest.mark.service)

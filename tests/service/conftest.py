@@ -1,37 +1,19 @@
 """Fixtures for the service tests: a throwaway PostgreSQL database, a private Redis queue, a real Celery worker
-process, the API in-process over the real database and broker, and small real datasets."""
+process, the API in-process over the real database and broker, a small real dataset, and a check that a test leaves
+no upload behind. Helpers that are not fixtures are in the modules beside this one."""
 from __future__ import annotations
 
-import os
 import secrets
-import signal
-import socket
-import subprocess
-import sys
-import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
-import httpx
-import psycopg
 import pytest
 import redis
 
 from kernel.settings import Settings
 
-PG_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"
-REDIS_URL = "redis://127.0.0.1:6379/0"
-REPO = Path(__file__).resolve().parents[2]
-
-
-def settings_env(settings: Settings) -> dict[str, str]:
-    """The DROP_ environment that makes a subprocess see the same settings."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("DROP_")}
-    for name, value in settings.model_dump().items():
-        if value is not None:
-            env[f"DROP_{name.upper()}"] = str(value)
-    return env
+from .authed import Authed
+from .backends import REDIS_URL, database
+from .processes import start_worker, stop_worker
 
 
 @pytest.fixture(scope="session")
@@ -42,19 +24,6 @@ def hopper_file(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("data") / "hopper-random.hdf5"
     save_hdf5(path, collect_transitions("hopper", random_policy(3, 0), 2000, seed=0), {"env_name": "Hopper-v4"})
     return path
-
-
-@contextmanager
-def database() -> Iterator[str]:
-    """A new empty PostgreSQL database, dropped afterwards."""
-    name = f"drop_test_{secrets.token_hex(4)}"
-    with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
-        conn.execute(f'CREATE DATABASE "{name}"')
-    try:
-        yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
-    finally:
-        with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
-            conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
 @pytest.fixture(scope="session")
@@ -89,69 +58,6 @@ def settings(tmp_path_factory, pg_url) -> Settings:
         client.delete(key)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if needle in path.read_text(errors="replace"):
-            return
-        if proc.poll() is not None:
-            break
-        time.sleep(0.2)
-    raise RuntimeError(f"{needle!r} not seen; log:\n{path.read_text(errors='replace')[-4000:]}")
-
-
-def wait_ready(http: httpx.Client, proc: subprocess.Popen, log: Path, timeout: float = 60) -> None:
-    """Poll the server's /readyz until it answers 200; fail with its log if it exits or never does."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            if http.get("/readyz").status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        assert time.monotonic() < deadline and proc.poll() is None, log.read_text(errors="replace")[-4000:]
-        time.sleep(0.2)
-
-
-def start_worker(settings: Settings, log: Path, repo: Path = REPO) -> subprocess.Popen:
-    """A `drop worker` (of the code in `repo`) in a process group of its own, so kill_group takes its pool children
-    with it."""
-    with log.open("ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=repo,
-                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-    try:
-        wait_for_line(log, " ready.", proc, 60)
-    except BaseException:
-        kill_group(proc)
-        raise
-    return proc
-
-
-def kill_group(proc: subprocess.Popen) -> None:
-    """SIGKILL a worker and its pool children: a crash, with no chance to checkpoint or hand the job back."""
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    proc.wait()
-
-
-def stop_worker(proc: subprocess.Popen) -> None:
-    """Warm shutdown, or a kill if it takes too long."""
-    proc.terminate()
-    try:
-        proc.wait(20)
-    except subprocess.TimeoutExpired:
-        kill_group(proc)
-
-
 @pytest.fixture(scope="session")
 def worker(settings, tmp_path_factory):
     """One real `drop worker` process consuming the test queue."""
@@ -184,44 +90,24 @@ def client(app):
 
 @pytest.fixture
 def alice(client, tokens):
-    return _Authed(client, tokens["alice"])
+    return Authed(client, tokens["alice"])
 
 
 @pytest.fixture
 def bob(client, tokens):
-    return _Authed(client, tokens["bob"])
+    return Authed(client, tokens["bob"])
 
 
-class _Authed:
-    """A TestClient that sends one owner's bearer token."""
+def _leftovers(settings) -> list[Path]:
+    """What is in the folders an upload writes to."""
+    return [p for sub in ("uploads", "datasets") for p in (settings.data_dir / sub).iterdir()]
 
-    def __init__(self, client, token: str):
-        self.client, self.headers = client, {"Authorization": f"Bearer {token}"}
 
-    def request(self, method: str, url: str, headers: dict | None = None, **kw):
-        return self.client.request(method, url, headers={**self.headers, **(headers or {})}, **kw)
-
-    def get(self, url, **kw):
-        return self.request("GET", url, **kw)
-
-    def post(self, url, **kw):
-        return self.request("POST", url, **kw)
-
-    def delete(self, url, **kw):
-        return self.request("DELETE", url, **kw)
-
-    def stream(self, method, url, headers=None, **kw):
-        return self.client.stream(method, url, headers={**self.headers, **(headers or {})}, **kw)
-
-    def upload(self, path: Path, **kw):
-        with open(path, "rb") as fh:
-            return self.post("/v1/datasets", files={"file": (path.name, fh, "application/x-hdf5")}, **kw)
-
-    def wait(self, job_id: str, statuses: set[str], timeout: float = 120.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            job = self.get(f"/v1/jobs/{job_id}").json()
-            if job["status"] in statuses:
-                return job
-            time.sleep(0.25)
-        raise AssertionError(f"job {job_id} still {job['status']} after {timeout} s: {job}")
+@pytest.fixture
+def clean(settings, alice):
+    """The test leaves no file in the upload folders and no dataset of alice's behind."""
+    before_files = set(_leftovers(settings))
+    before_ids = {d["id"] for d in alice.get("/v1/datasets", params={"limit": 100}).json()["data"]}
+    yield
+    assert set(_leftovers(settings)) == before_files
+    assert {d["id"] for d in alice.get("/v1/datasets", params={"limit": 100}).json()["data"]} == before_ids

@@ -2,25 +2,13 @@
 its jobs stay queued (nothing trains) until they are cancelled on the way out."""
 from __future__ import annotations
 
-import io
 import secrets
 from contextlib import contextmanager
 from typing import Iterator
 
-import numpy as np
 import redis
 
-from .conftest import REDIS_URL
-
-
-def tiny_npz(seed: int) -> bytes:
-    """A 40-transition hopper-shaped dataset, different for each seed."""
-    rng, n = np.random.default_rng(seed), 40
-    buf = io.BytesIO()
-    np.savez(buf, observations=rng.normal(size=(n, 11)).astype(np.float32),
-             actions=rng.uniform(-1, 1, size=(n, 3)).astype(np.float32),
-             rewards=rng.normal(size=n).astype(np.float32), terminals=np.zeros(n, bool))
-    return buf.getvalue()
+from .backends import REDIS_URL
 
 
 @contextmanager

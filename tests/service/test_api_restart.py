@@ -11,7 +11,7 @@ import time
 import httpx
 import pytest
 
-from .conftest import REPO, free_port, settings_env, start_worker, stop_worker, wait_ready
+from .processes import REPO, free_port, settings_env, start_worker, stop_worker, wait_ready
 
 
 class Api:

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import httpx
 
-from .conftest import REPO, free_port, settings_env, wait_ready
-from .private_api import tiny_npz
-from .test_observability import sample
+from .datasets import tiny_npz
+from .processes import REPO, free_port, settings_env, wait_ready
+from .scrapes import sample
 
 
 def children(pid: int) -> list[int]:

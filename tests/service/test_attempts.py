@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import time
 
-from .conftest import _Authed, kill_group, start_worker, stop_worker
+from .authed import Authed
+from .processes import kill_group, start_worker, stop_worker
 
 
 def _wait_running(alice, job_id: str, attempt: int, timeout: float = 60) -> None:
@@ -28,7 +29,7 @@ def test_job_fails_after_max_attempts_crashes(own_settings, hopper_file, tmp_pat
     log = tmp_path / "workers.log"
     last = None
     with TestClient(create_app(settings), raise_server_exceptions=False) as client:
-        alice = _Authed(client, create_token(client.app.state.sessions, "alice"))
+        alice = Authed(client, create_token(client.app.state.sessions, "alice"))
         ds = alice.upload(hopper_file).json()
         job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke",
                                            "overrides": {"epochs": 500}}).json()

@@ -7,7 +7,7 @@ import time
 import pytest
 from sqlalchemy import select
 
-from .conftest import settings_env
+from .processes import settings_env
 
 
 def test_tokens_are_stored_hashed(app, tokens):

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 import redis
 
-from .conftest import _Authed, free_port, start_worker, stop_worker
+from .authed import Authed
+from .processes import free_port, start_worker, stop_worker
 
 
 class RedisServer:
@@ -60,7 +61,7 @@ def test_jobs_survive_a_redis_restart(own_settings, own_redis, hopper_file, tmp_
     worker = start_worker(settings, log)
     try:
         with TestClient(create_app(settings), raise_server_exceptions=False) as client:
-            alice = _Authed(client, create_token(client.app.state.sessions, "alice"))
+            alice = Authed(client, create_token(client.app.state.sessions, "alice"))
             ds = alice.upload(hopper_file).json()
             spec = {"dataset_id": ds["id"], "preset": "smoke"}
             running = alice.post("/v1/jobs", json={**spec, "overrides": {"epochs": 10}}).json()

@@ -8,7 +8,8 @@ import time
 
 import pytest
 
-from .conftest import _Authed, kill_group, start_worker, stop_worker
+from .authed import Authed
+from .processes import kill_group, start_worker, stop_worker
 
 
 @pytest.fixture
@@ -28,7 +29,7 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
     second = None
     try:
         with TestClient(create_app(crash_settings), raise_server_exceptions=False) as client:
-            alice = _Authed(client, tokens["alice"])
+            alice = Authed(client, tokens["alice"])
             ds = alice.upload(hopper_file).json()
             job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke",
                                                "overrides": {"epochs": 6, "steps_per_epoch": 40}}).json()

@@ -13,7 +13,8 @@ import httpx
 
 from drop_engine.data_rows import DataShape
 
-from .private_api import private_api, tiny_npz
+from .datasets import tiny_npz
+from .private_api import private_api
 
 ROWS = 100_000  # declared; 99,999 transitions once the last row (no successor) is dropped
 DECODED = DataShape(ROWS - 1, 11, 3).decoded_bytes  # 10.8 MB

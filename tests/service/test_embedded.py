@@ -17,7 +17,7 @@ import httpx
 import pytest
 import torch
 
-from .conftest import REPO, free_port, wait_ready
+from .processes import REPO, free_port, wait_ready
 
 
 class Serve:

@@ -11,8 +11,8 @@ from typing import Iterator
 import httpx
 import uvicorn
 
-from .conftest import free_port
-from .private_api import tiny_npz
+from .datasets import tiny_npz
+from .processes import free_port
 
 STREAMS = 100
 SSE = {"Accept": "text/event-stream"}

@@ -7,7 +7,7 @@ from kernel.ids import new_id
 from kernel.models import Dataset, Job
 from worker.runner import run_job
 
-# The temperature runs away (tests/test_divergence.py): the critic's loss overflows by the first epoch's end.
+# The temperature runs away (tests/engine/test_divergence.py): the critic's loss overflows by the first epoch's end.
 RUNAWAY_ALPHA = {"sac": {"alpha_lr": 1.0, "target_entropy": 1000.0}, "epochs": 3, "steps_per_epoch": 50}
 
 

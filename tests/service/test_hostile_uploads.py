@@ -13,7 +13,8 @@ import h5py
 import numpy as np
 import pytest
 
-from .test_uploads import _arrays, _assert_problem, _minari_zip, clean  # noqa: F401 (clean is a fixture)
+from .datasets import d4rl_arrays, minari_zip
+from .problems import assert_problem
 
 SECRET_REWARD = 123456.0  # what a report would show if the upload had read the other file
 
@@ -30,7 +31,7 @@ def secret(tmp_path) -> Path:
 def _upload_with(alice, path: Path, replace: str, make) -> dict:
     """Write a valid D4RL file whose `replace` key is built by `make(handle)`, upload it, return the 422 body."""
     with h5py.File(path, "w") as f:
-        for key, value in _arrays(50).items():
+        for key, value in d4rl_arrays(50).items():
             if key != replace:
                 f.create_dataset(key, data=value)
         make(f)
@@ -101,7 +102,7 @@ def test_hdf5_builtin_filters_are_accepted(alice, tmp_path):
     """gzip + shuffle + fletcher32 on one key and lzf on another: the filters a D4RL or h5py file uses."""
     path = tmp_path / "filters.hdf5"
     with h5py.File(path, "w") as f:
-        for key, value in _arrays(50).items():
+        for key, value in d4rl_arrays(50).items():
             options = {"compression": "lzf"} if key == "actions" else {"compression": "gzip", "shuffle": True,
                                                                          "fletcher32": True}
             f.create_dataset(key, data=value, **options)
@@ -182,32 +183,32 @@ ESCAPE = f"drop-escape-{secrets.token_hex(4)}"
     (_symlink("hopper-test-v0/data/main_data.hdf5.link", "/etc/passwd"), "symbolic link"),
 ], ids=["absolute", "dot-dot", "dot-dot-backslash", "symlink"])
 def test_minari_zip_with_escaping_entries(alice, clean, entry, needle):
-    r = _post_zip(alice, _with_entry(_minari_zip(), entry, b"/etc/passwd"))
-    body = _assert_problem(r, 422, "zip entry", needle)
+    r = _post_zip(alice, _with_entry(minari_zip(), entry, b"/etc/passwd"))
+    body = assert_problem(r, 422, "zip entry", needle)
     assert body["code"] == "invalid_dataset"
     assert not Path("/tmp", ESCAPE).exists()
 
 
 def test_zip_that_expands_past_the_limit(alice, clean, settings):
     """A few KB of deflated zeros that expand to 5x the upload limit: refused from the zip's directory."""
-    data = _with_entry(_minari_zip(), "hopper-test-v0/data/padding.bin", bytes(5 * settings.max_upload_bytes))
+    data = _with_entry(minari_zip(), "hopper-test-v0/data/padding.bin", bytes(5 * settings.max_upload_bytes))
     assert len(data) < settings.max_upload_bytes // 20
-    _assert_problem(_post_zip(alice, data), 422, "expand to", "over the limit")
+    assert_problem(_post_zip(alice, data), 422, "expand to", "over the limit")
 
 
 def test_npz_that_expands_past_the_limit(alice, clean, settings):
     buf = io.BytesIO()
-    arrays = _arrays(50)
+    arrays = d4rl_arrays(50)
     arrays["observations"] = np.zeros((5 * settings.max_upload_bytes // 44, 11), np.float32)
     np.savez_compressed(buf, **arrays)
-    _assert_problem(_post_zip(alice, buf.getvalue()), 422, "expand to", "over the limit")
+    assert_problem(_post_zip(alice, buf.getvalue()), 422, "expand to", "over the limit")
 
 
 def test_zip_entry_that_expands_past_its_declared_size(alice, clean):
     """The central directory says main_data.hdf5 is 1 KB; it inflates to far more. zipfile stops at the declared
     size and the CRC check fails, so nothing beyond what was declared (and bounded) is ever written."""
     deflated = io.BytesIO()
-    with zipfile.ZipFile(io.BytesIO(_minari_zip())) as src, \
+    with zipfile.ZipFile(io.BytesIO(minari_zip())) as src, \
             zipfile.ZipFile(deflated, "w", compression=zipfile.ZIP_DEFLATED) as dst:
         for info in src.infolist():
             dst.writestr(info.filename, src.read(info))
@@ -215,7 +216,7 @@ def test_zip_entry_that_expands_past_its_declared_size(alice, clean):
     central = data.index(b"PK\x01\x02")
     assert data[central + 46:central + 46 + 16].startswith(b"hopper-test-v0/d")
     data[central + 24:central + 28] = (1024).to_bytes(4, "little")  # uncompressed size of the first entry
-    _assert_problem(_post_zip(alice, bytes(data)), 422, "broken zip")
+    assert_problem(_post_zip(alice, bytes(data)), 422, "broken zip")
 
 
 def test_minari_main_data_with_an_external_link(alice, clean, secret):
@@ -231,4 +232,4 @@ def test_minari_main_data_with_an_external_link(alice, clean, secret):
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
         z.writestr("hopper-test-v0/data/main_data.hdf5", h5.getvalue())
-    _assert_problem(_post_zip(alice, buf.getvalue()), 422, "episode_0/rewards", "external link")
+    assert_problem(_post_zip(alice, buf.getvalue()), 422, "episode_0/rewards", "external link")

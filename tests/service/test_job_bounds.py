@@ -13,7 +13,8 @@ from drop_engine.resources import DataShape
 from kernel.db import upgrade
 from kernel.settings import Settings
 
-from .private_api import private_api, tiny_npz
+from .datasets import tiny_npz
+from .private_api import private_api
 
 PROBLEM = "application/problem+json"
 

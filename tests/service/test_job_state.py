@@ -14,7 +14,7 @@ from kernel.ids import new_id
 from kernel.job_state import ATTEMPT, TRANSITIONS, ForbiddenTransition, JobStatus, transition
 from kernel.models import Job, JobEvent, Owner
 
-from .conftest import database
+from .backends import database
 
 PAIRS = list(itertools.product(JobStatus, JobStatus))
 ALLOWED = [(a, b) for a, b in PAIRS if b in TRANSITIONS[a]]

@@ -14,7 +14,7 @@ from kernel.db import upgrade
 from kernel.job_state import JobStatus
 from kernel.settings import Settings
 
-from .conftest import database
+from .backends import database
 
 
 def test_unmigrated_database_is_refused_until_upgrade(tmp_path, monkeypatch, capsys):

@@ -11,7 +11,7 @@ from pathlib import Path
 import h5py
 import pytest
 
-from .test_uploads import _arrays
+from .datasets import d4rl_arrays
 
 HOSTILE = ["../../etc/passwd", "/etc/passwd", "..%2f..%2fetc%2fpasswd", "%2e%2e%2f%2e%2e%2fetc%2fpasswd",
            "..\\..\\windows\\win.ini", "~root/.ssh/authorized_keys", "a" * 300]
@@ -57,7 +57,7 @@ def api(sandbox, tokens):
 def small_file(tmp_path_factory) -> bytes:
     path = tmp_path_factory.mktemp("small") / "small.hdf5"
     with h5py.File(path, "w") as f:
-        for key, value in _arrays(50).items():
+        for key, value in d4rl_arrays(50).items():
             f.create_dataset(key, data=value)
     return path.read_bytes()
 

@@ -8,7 +8,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from .private_api import private_api, tiny_npz
+from .datasets import tiny_npz
+from .private_api import private_api
 
 PROBLEM = "application/problem+json"
 JOB_QUOTA = 2

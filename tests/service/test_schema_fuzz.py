@@ -14,8 +14,8 @@ from schemathesis.checks import (content_type_conformance, negative_data_rejecti
                                  response_schema_conformance, status_code_conformance)
 from schemathesis.generation import GenerationMode
 
-
-from .private_api import private_api, tiny_npz
+from .datasets import tiny_npz
+from .private_api import private_api
 
 EXAMPLES_PER_OPERATION = 15
 CHECKS = [not_a_server_error, negative_data_rejection, status_code_conformance, content_type_conformance,

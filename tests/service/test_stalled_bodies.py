@@ -18,8 +18,8 @@ import pytest
 
 from kernel.logs import ACCEPT_ERROR
 
-from .conftest import REPO, free_port, settings_env, wait_ready
-from .private_api import tiny_npz
+from .datasets import tiny_npz
+from .processes import REPO, free_port, settings_env, wait_ready
 
 IDLE_S = 1.0
 

@@ -9,7 +9,10 @@ from pathlib import Path
 import pytest
 from sqlalchemy import select
 
-from .conftest import _Authed, start_worker, stop_worker
+from .authed import Authed
+from .processes import start_worker, stop_worker
+
+pytestmark = pytest.mark.needs_root
 
 
 @pytest.fixture
@@ -44,7 +47,7 @@ def api(disk):
     from app.main import create_app
 
     with TestClient(create_app(disk), raise_server_exceptions=False) as c:
-        yield _Authed(c, create_token(c.app.state.sessions, "alice"))
+        yield Authed(c, create_token(c.app.state.sessions, "alice"))
 
 
 def _files(folder: Path) -> list[Path]:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import io
-import json
 import zipfile
 import zlib
 from pathlib import Path
@@ -11,20 +10,8 @@ import h5py
 import numpy as np
 import pytest
 
-PROBLEM = "application/problem+json"
-
-
-def _leftovers(settings) -> list[Path]:
-    return [p for sub in ("uploads", "datasets") for p in (settings.data_dir / sub).iterdir()]
-
-
-@pytest.fixture
-def clean(settings, alice):
-    before_files = set(_leftovers(settings))
-    before_ids = {d["id"] for d in alice.get("/v1/datasets", params={"limit": 100}).json()["data"]}
-    yield
-    assert set(_leftovers(settings)) == before_files
-    assert {d["id"] for d in alice.get("/v1/datasets", params={"limit": 100}).json()["data"]} == before_ids
+from .datasets import d4rl_arrays, minari_zip
+from .problems import assert_problem
 
 
 def _write(path: Path, arrays: dict) -> Path:
@@ -34,65 +21,46 @@ def _write(path: Path, arrays: dict) -> Path:
     return path
 
 
-def _arrays(n=50, obs=11, act=3):
-    rng = np.random.default_rng(0)
-    return {"observations": rng.normal(size=(n, obs)).astype(np.float32),
-            "actions": rng.uniform(-1, 1, size=(n, act)).astype(np.float32),
-            "rewards": rng.normal(size=n).astype(np.float32),
-            "terminals": np.zeros(n, bool), "timeouts": np.eye(1, n, n - 1, dtype=bool)[0]}
-
-
-def _assert_problem(r, status: int, *needles: str) -> dict:
-    assert r.status_code == status, r.text
-    assert r.headers["content-type"] == PROBLEM
-    body = r.json()
-    assert body["status"] == status and body["title"] and body["type"] and body["code"]
-    for needle in needles:
-        assert needle in body["detail"], body
-    assert "Traceback" not in r.text
-    return body
-
-
 def test_truncated_hdf5(alice, clean, hopper_file, tmp_path):
     bad = tmp_path / "truncated.hdf5"
     bad.write_bytes(hopper_file.read_bytes()[: hopper_file.stat().st_size // 2])
-    _assert_problem(alice.upload(bad), 422)
+    assert_problem(alice.upload(bad), 422)
 
 
 def test_wrong_keys(alice, clean, tmp_path):
-    arrays = _arrays()
+    arrays = d4rl_arrays()
     arrays["acts"] = arrays.pop("actions")
-    _assert_problem(alice.upload(_write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
+    assert_problem(alice.upload(_write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
 
 
 def test_nans(alice, clean, tmp_path):
-    arrays = _arrays()
+    arrays = d4rl_arrays()
     arrays["rewards"][[3, 7]] = np.nan
-    _assert_problem(alice.upload(_write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
+    assert_problem(alice.upload(_write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
 
 
 def test_not_a_dataset(alice, clean):
     r = alice.post("/v1/datasets", content=b"hello, world" * 10, headers={"Content-Type": "application/octet-stream"})
-    _assert_problem(r, 422, "not an HDF5")
+    assert_problem(r, 422, "not an HDF5")
 
 
 def test_empty_and_missing_part(alice, clean):
-    _assert_problem(alice.post("/v1/datasets", content=b""), 422, "empty")
+    assert_problem(alice.post("/v1/datasets", content=b""), 422, "empty")
     r = alice.post("/v1/datasets", files={"other": ("x.hdf5", b"abc", "application/x-hdf5")})
-    _assert_problem(r, 422, "'file'")
+    assert_problem(r, 422, "'file'")
 
 
 def test_over_the_size_limit(alice, clean, settings):
     too_big = b"\0" * (settings.max_upload_bytes + 1)
-    _assert_problem(alice.post("/v1/datasets", content=too_big), 413, "DROP_MAX_UPLOAD_BYTES")
+    assert_problem(alice.post("/v1/datasets", content=too_big), 413, "DROP_MAX_UPLOAD_BYTES")
     r = alice.post("/v1/datasets", files={"file": ("big.hdf5", too_big, "application/x-hdf5")})
-    _assert_problem(r, 413)
+    assert_problem(r, 413)
 
     def chunks():  # no Content-Length: the limit is enforced while streaming
         for _ in range(settings.max_upload_bytes // 65536 + 2):
             yield b"\0" * 65536
 
-    _assert_problem(alice.post("/v1/datasets", content=chunks()), 413)
+    assert_problem(alice.post("/v1/datasets", content=chunks()), 413)
 
 
 def test_raw_body_upload_and_name(alice, hopper_file):
@@ -104,7 +72,7 @@ def test_raw_body_upload_and_name(alice, hopper_file):
 
 def test_npz_upload(alice, tmp_path):
     path = tmp_path / "data.npz"
-    np.savez(path, **_arrays(40))
+    np.savez(path, **d4rl_arrays(40))
     r = alice.post("/v1/datasets", content=path.read_bytes())
     assert r.status_code == 201, r.text
     report = r.json()["report"]
@@ -113,27 +81,8 @@ def test_npz_upload(alice, tmp_path):
     assert alice.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
 
 
-def _minari_zip(n_episodes=3, length=20) -> bytes:
-    rng = np.random.default_rng(1)
-    h5 = io.BytesIO()
-    with h5py.File(h5, "w") as f:
-        for i in range(n_episodes):
-            ep = f.create_group(f"episode_{i}")
-            ep["observations"] = rng.normal(size=(length + 1, 11)).astype(np.float32)
-            ep["actions"] = rng.uniform(-1, 1, size=(length, 3)).astype(np.float32)
-            ep["rewards"] = rng.normal(size=length)
-            ep["terminations"] = np.eye(1, length, length - 1, dtype=bool)[0] if i == 0 else np.zeros(length, bool)
-            ep["truncations"] = np.zeros(length, bool) if i == 0 else np.eye(1, length, length - 1, dtype=bool)[0]
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w") as z:
-        z.writestr("hopper-test-v0/data/main_data.hdf5", h5.getvalue())
-        z.writestr("hopper-test-v0/data/metadata.json",
-                   json.dumps({"dataset_id": "hopper-test-v0", "env_spec": json.dumps({"id": "Hopper-v5"})}))
-    return buf.getvalue()
-
-
 def test_minari_zip_is_converted(alice):
-    r = alice.post("/v1/datasets", files={"file": ("hopper-test-v0.zip", _minari_zip(), "application/zip")})
+    r = alice.post("/v1/datasets", files={"file": ("hopper-test-v0.zip", minari_zip(), "application/zip")})
     assert r.status_code == 201, r.text
     ds = r.json()
     assert ds["format"] == "minari" and ds["env"] == "hopper"
@@ -147,7 +96,7 @@ def test_bad_zip(alice, clean):
     with zipfile.ZipFile(buf, "w") as z:
         z.writestr("readme.txt", "hi")
     r = alice.post("/v1/datasets", files={"file": ("x.zip", buf.getvalue(), "application/zip")})
-    _assert_problem(r, 422, "Minari")
+    assert_problem(r, 422, "Minari")
 
 
 def _one_chunk_of_zeros(ds, nbytes: int) -> None:

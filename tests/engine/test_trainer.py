@@ -1,18 +1,15 @@
 """Smoke runs of all three algorithms, exact stop-and-resume from a stop in any phase, and exported last and best
 policies that need only torch."""
 import dataclasses
-import inspect
 import json
 import subprocess
 import sys
-from collections import Counter
 from pathlib import Path
 
 import pytest
 import torch
 
 from drop_engine import trainer as trainer_module
-from drop_engine.callbacks import Callback
 from drop_engine.checkpoint import checkpoint_name, list_checkpoints, load_latest
 from drop_engine.config import build_config
 from drop_engine.data import from_arrays
@@ -22,45 +19,7 @@ from drop_engine.export import load_policy
 from drop_engine.rollout import model_rollout
 from drop_engine.trainer import Trainer, train
 
-
-def _code(fn):
-    return inspect.unwrap(fn).__code__
-
-
-class Recorder(Callback):
-    """Records everything, and counts the asks to stop made from inside each function (`asked_in`); with `stop_in`,
-    asks to stop from the ask after the first `after` of those made inside that function on."""
-
-    def __init__(self, stop_in=None, after: int = 0):
-        self.metrics, self.evaluations, self.checkpoints, self.phases, self.progress = [], [], [], set(), None
-        self.asks, self.stop_in, self.after, self.stopping, self.starts = Counter(), stop_in, after, False, []
-
-    def asked_in(self, fn) -> int:
-        return self.asks[_code(fn)]
-
-    def on_start(self, resumed):
-        self.starts.append(resumed)
-
-    def on_progress(self, phase, epoch, step, total):
-        self.phases.add(phase)
-        self.progress = (epoch, step)
-
-    def on_metrics(self, metrics, step):
-        self.metrics.append((step, dict(metrics)))
-
-    def on_evaluation(self, epoch, mean_return, normalized_score):
-        self.evaluations.append((epoch, mean_return, normalized_score))
-
-    def on_checkpoint(self, path, epoch, step):
-        self.checkpoints.append(path)
-
-    def should_stop(self):
-        frame = sys._getframe(1)
-        while frame is not None:
-            self.asks[frame.f_code] += 1
-            frame = frame.f_back
-        self.stopping = self.stopping or (self.stop_in is not None and self.asked_in(self.stop_in) > self.after)
-        return self.stopping
+from .recorder import Recorder
 
 
 def _untimed(recorder):

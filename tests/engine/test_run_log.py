@@ -6,7 +6,7 @@ from drop_engine.config import build_config
 from drop_engine.run_log import RunLog
 from drop_engine.trainer import Trainer
 
-from test_trainer import Recorder
+from .recorder import Recorder
 
 
 def _history(out):

@@ -1,0 +1,16 @@
+"""Checking a problem+json answer."""
+from __future__ import annotations
+
+PROBLEM = "application/problem+json"
+
+
+def assert_problem(r, status: int, *needles: str) -> dict:
+    """The answer is a problem+json of `status` whose detail holds each needle, with no traceback; its body."""
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == PROBLEM
+    body = r.json()
+    assert body["status"] == status and body["title"] and body["type"] and body["code"]
+    for needle in needles:
+        assert needle in body["detail"], body
+    assert "Traceback" not in r.text
+    return body

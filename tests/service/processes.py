@@ -1,0 +1,89 @@
+"""The service's processes in tests: the environment that gives a subprocess the test's settings, a free port,
+waiting for a process to be ready, and starting, crashing and stopping a `drop worker`."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from kernel.settings import Settings
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def settings_env(settings: Settings) -> dict[str, str]:
+    """The DROP_ environment that makes a subprocess see the same settings."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DROP_")}
+    for name, value in settings.model_dump().items():
+        if value is not None:
+            env[f"DROP_{name.upper()}"] = str(value)
+    return env
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for_line(path: Path, needle: str, proc: subprocess.Popen, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if needle in path.read_text(errors="replace"):
+            return
+        if proc.poll() is not None:
+            break
+        time.sleep(0.2)
+    raise RuntimeError(f"{needle!r} not seen; log:\n{path.read_text(errors='replace')[-4000:]}")
+
+
+def wait_ready(http: httpx.Client, proc: subprocess.Popen, log: Path, timeout: float = 60) -> None:
+    """Poll the server's /readyz until it answers 200; fail with its log if it exits or never does."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if http.get("/readyz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline and proc.poll() is None, log.read_text(errors="replace")[-4000:]
+        time.sleep(0.2)
+
+
+def start_worker(settings: Settings, log: Path, repo: Path = REPO) -> subprocess.Popen:
+    """A `drop worker` (of the code in `repo`) in a process group of its own, so kill_group takes its pool children
+    with it."""
+    with log.open("ab") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "worker", "--concurrency", "1"], cwd=repo,
+                                env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+    try:
+        wait_for_line(log, " ready.", proc, 60)
+    except BaseException:
+        kill_group(proc)
+        raise
+    return proc
+
+
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL a worker and its pool children: a crash, with no chance to checkpoint or hand the job back."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait()
+
+
+def stop_worker(proc: subprocess.Popen) -> None:
+    """Warm shutdown, or a kill if it takes too long."""
+    proc.terminate()
+    try:
+        proc.wait(20)
+    except subprocess.TimeoutExpired:
+        kill_group(proc)
