@@ -17,7 +17,7 @@ COPY migrations ./migrations
 COPY alembic.ini ./
 # torch==2.13.0 from constraints.txt; point PIP_EXTRA_INDEX_URL at a CPU-only wheel index for a smaller image.
 ARG PIP_EXTRA_INDEX_URL=
-RUN pip install -c constraints.txt -e .
+RUN pip install -c constraints.txt -e '.[service]'
 
 USER drop
 ENV DROP_DATA_DIR=/data

@@ -1,9 +1,15 @@
 """Imports point one way: `app -> kernel <- worker`, all three -> `drop_engine`, and the engine knows nothing of the
 service (docs/ARCHITECTURE.md). Read from the source's syntax trees, imports inside functions included, so a lazy
-import cannot hide a dependency; and no module imports another that imports it back."""
+import cannot hide a dependency; and no module imports another that imports it back. The dependencies pyproject.toml
+declares match the imports: the engine needs only the base ones (`pip install drop-rl`), the service also its extra,
+and nothing declared goes unused."""
 from __future__ import annotations
 
 import ast
+import importlib.metadata
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -76,3 +82,68 @@ def test_the_modules_import_no_cycle():
 
     for module in sorted(modules):
         visit(module, [])
+
+
+NEEDS = {"drop_engine": ("dependencies",), "kernel": ("dependencies", "service"), "app": ("dependencies", "service"),
+         "worker": ("dependencies", "service")}
+# Imported, not declared: FastAPI is built on Starlette and pins its version.
+COMES_WITH = {"starlette": "fastapi"}
+# Declared, never imported: torch.onnx.export writes the policy's ONNX file with onnx.
+USED_UNIMPORTED = {"onnx"}
+
+
+def _normal(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+@pytest.fixture(scope="module")
+def project() -> dict:
+    """pyproject.toml's [project] table."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+
+
+def _declared(project: dict, *groups: str) -> set[str]:
+    """The distributions that these groups (`dependencies`, or an extra's name) require, by normalised name."""
+    lists = [project["dependencies"] if g == "dependencies" else project["optional-dependencies"][g] for g in groups]
+    return {_normal(re.match(r"[A-Za-z0-9._-]+", req).group(0)) for reqs in lists for req in reqs}
+
+
+def _third_party(package: str) -> set[str]:
+    """The top-level modules outside the standard library and this project that `package` imports."""
+    ours = set(PACKAGES) | {"__future__", ""}
+    return {name.split(".")[0] for module, names in GRAPH.items() if module.split(".")[0] == package
+            for name in names} - set(sys.stdlib_module_names) - ours
+
+
+def _distributions(module: str) -> set[str]:
+    """The installed distributions that provide top-level module `module`."""
+    return {_normal(d) for d in importlib.metadata.packages_distributions().get(module, [module])}
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_every_library_a_package_imports_is_declared(project, package):
+    declared = _declared(project, *NEEDS[package])
+    missing = sorted(m for m in _third_party(package)
+                     if not _distributions(m) & declared and COMES_WITH.get(m) not in declared)
+    assert not missing, f"{package} imports {missing}, which {' + '.join(NEEDS[package])} do not declare"
+
+
+def test_every_declared_dependency_is_imported(project):
+    imported = {d for package in PACKAGES for m in _third_party(package) for d in _distributions(m)}
+    unused = sorted(_declared(project, "dependencies", "service") - imported - USED_UNIMPORTED)
+    assert not unused, f"declared in pyproject.toml but imported nowhere: {unused}"
+
+
+def test_the_engine_and_its_commands_run_without_the_service_extra():
+    """As after `pip install drop-rl`: every engine module imports, and `drop train --help` answers, with the service's
+    libraries made unimportable."""
+    code = ("import importlib, pkgutil, sys\n"
+            f"sys.modules.update(dict.fromkeys({sorted(SERVICE_LIBRARIES)!r}))\n"
+            "import drop_engine\n"
+            "for m in pkgutil.walk_packages(drop_engine.__path__, 'drop_engine.'):\n"
+            "    importlib.import_module(m.name)\n"
+            "from app.cli import main\n"
+            "main(['train', '--help'])\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "--dataset" in done.stdout, done.stderr[-4000:]
