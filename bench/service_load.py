@@ -45,8 +45,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the service tests' helpers: throwaway database, worker process, settings as env
 
 from kernel.settings import Settings  # noqa: E402
-from tests.service.conftest import (REDIS_URL, database, free_port, kill_group, settings_env,  # noqa: E402
-                                    start_worker, wait_for_line, wait_ready)
+from tests.service.backends import REDIS_URL, database  # noqa: E402
+from tests.service.processes import (free_port, kill_group, settings_env, start_worker, wait_for_line,  # noqa: E402
+                                     wait_ready)
 
 MB = 1_000_000
 # Long enough to outlast any benchmark, small enough that epochs (and so events) come every few seconds.
@@ -128,7 +129,7 @@ def drop_queue(queue: str) -> None:
 def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) -> Iterator[tuple[str, str, str]]:
     """(API url, token, a job's path) of a `drop api` from `repo` with no worker at all, on a database of its own
     holding one queued job: the API's own ceiling, nothing else running."""
-    from tests.service.private_api import tiny_npz
+    from tests.service.datasets import tiny_npz
 
     folder.mkdir(parents=True)
     with database() as url:
