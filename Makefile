@@ -1,10 +1,10 @@
-# The README's two commands: `make run` and `make test`. Both create .venv on first use.
+# The README's two commands: `make run` and `make test`. Both create .venv on first use; CI also runs `make lint`.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test bench-data bench-speed bench-table bench-penalty bench-load clean
+.PHONY: install run test lint bench-data bench-speed bench-table bench-penalty bench-load clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -19,6 +19,9 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 # D4RL-style benchmark datasets (random, medium, medium-replay, medium-expert) made by `drop collect`, one env after
 # another, into a cache outside the repo: 20 min for hopper on 2 idle cores; walker2d and halfcheetah took about 40 min

@@ -160,17 +160,20 @@ def bench_threads(data: Dataset, threads: int, device: torch.device, work: Path)
 
 def markdown(rows: list[dict], meta: dict) -> str:
     lines = [f"# Engine speed ({meta['date']}, {meta['machine']}, torch {meta['torch']})", "",
-             "| threads | device | matmul GFLOP/s | MLP-256 Adam step/s (share) | SAC upd/s (share) | DICE upd/s (share) | rollout 50k x h s (share) "
-             "| dyn epoch/100k s | eval steps/s | DROP epoch s (x parts) | MBPO epoch s | DROP/MBPO |",
+             "| threads | device | matmul GFLOP/s | MLP-256 Adam step/s (share) | SAC upd/s (share) "
+             "| DICE upd/s (share) | rollout 50k x h s (share) | dyn epoch/100k s | eval steps/s "
+             "| DROP epoch s (x parts) | MBPO epoch s | DROP/MBPO |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         m, s, d, ro = r["mlp256_adam_step"], r["sac_update"], r["dice_update"], r["rollout_50k"]
         lines.append(
-            f"| {r['threads']} | {r['device']} | {r['matmul_gflops']:.0f} | {m['per_second']:.0f} ({m['share_of_matmul']:.0%}) "
+            f"| {r['threads']} | {r['device']} | {r['matmul_gflops']:.0f} "
+            f"| {m['per_second']:.0f} ({m['share_of_matmul']:.0%}) "
             f"| {s['per_second']:.0f} ({s['share_of_matmul']:.0%}) "
             f"| {d['per_second']:.0f} ({d['share_of_matmul']:.0%}) | {ro['seconds']:.2f} ({ro['share_of_matmul']:.0%}) "
             f"| {r['dynamics_epoch_per_100k_s']:.1f} | {r['evaluation_steps_per_s']:.0f} "
-            f"| {r['drop_epoch_s']:.1f} ({r['drop_epoch_over_parts']:.2f}) | {r['mbpo_epoch_s']:.1f} | {r['drop_over_mbpo']:.2f} |")
+            f"| {r['drop_epoch_s']:.1f} ({r['drop_epoch_over_parts']:.2f}) | {r['mbpo_epoch_s']:.1f} "
+            f"| {r['drop_over_mbpo']:.2f} |")
     return "\n".join(lines) + "\n"
 
 

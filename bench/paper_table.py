@@ -93,7 +93,8 @@ def table(records: list[dict], behaviour: dict[str, float | None], algorithms: l
     def cell(scores: list[float]) -> str:
         return f"{np.mean(scores):.1f} ± {np.std(scores):.1f} (n={len(scores)})" if scores else "-"
 
-    lines = ["| dataset | behaviour | " + " | ".join(f"{a.upper()} final | {a.upper()} best" for a in algorithms) + " |",
+    columns = " | ".join(f"{a.upper()} final | {a.upper()} best" for a in algorithms)
+    lines = [f"| dataset | behaviour | {columns} |",
              "|---|---|" + "---|---|" * len(algorithms)]
     for dataset in behaviour:
         row = [dataset, f"{behaviour[dataset]:.1f}" if behaviour[dataset] is not None else "-"]
@@ -117,8 +118,8 @@ def targets(records: list[dict], datasets: list[str]) -> str:
         lines.append(f"| {algo.upper()}'s | {len(pairs)} | {sum(a >= b for a, b in pairs)} |")
     drop = [r for r in records if r["algorithm"] == "drop"]
     held = [r for r in drop if r["best"] is not None and r["final"] >= 0.8 * r["best"]]
-    lines += ["", f"No collapse (final at least 0.8 of best): {len(held)} of {len(drop)} DROP runs; final is the mean of "
-                  f"the last {FINAL_WINDOW} evaluations."]
+    lines += ["", f"No collapse (final at least 0.8 of best): {len(held)} of {len(drop)} DROP runs; final is the mean "
+                  f"of the last {FINAL_WINDOW} evaluations."]
     return "\n".join(lines) + "\n"
 
 

@@ -118,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
               "dataset_attrs": {k: str(v) for k, v in data.attrs.items()},
               "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
                                "all": correlations(both)},
-              "mean_error": {"offline": float(offline["error"].mean()), "model_rollout": float(rollout["error"].mean())}}
+              "mean_error": {"offline": float(offline["error"].mean()),
+                             "model_rollout": float(rollout["error"].mean())}}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"penalty_vs_error_{cfg.env}"

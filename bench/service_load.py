@@ -46,8 +46,14 @@ sys.path.insert(0, str(REPO))  # the service tests' helpers: throwaway database,
 
 from kernel.settings import Settings  # noqa: E402
 from tests.service.backends import REDIS_URL, database  # noqa: E402
-from tests.service.processes import (free_port, kill_group, settings_env, start_worker, wait_for_line,  # noqa: E402
-                                     wait_ready)
+from tests.service.processes import (  # noqa: E402
+    free_port,
+    kill_group,
+    settings_env,
+    start_worker,
+    wait_for_line,
+    wait_ready,
+)
 
 MB = 1_000_000
 # Long enough to outlast any benchmark, small enough that epochs (and so events) come every few seconds.
@@ -180,7 +186,8 @@ def ceiling(args, folder: Path) -> dict:
         targets = []
         for i, (name, repo, extra) in enumerate(variants):
             base, token, job = stack.enter_context(idle_api(folder / f"ceiling-{i}", repo, extra, args.api_workers))
-            targets += [(name, "GET /healthz", base + "/healthz", token), (name, "GET /v1/jobs/{id}", base + job, token)]
+            targets += [(name, "GET /healthz", base + "/healthz", token),
+                        (name, "GET /v1/jobs/{id}", base + job, token)]
         runs: dict[tuple[str, str], list[tuple[float, int]]] = defaultdict(list)
         for r in range(args.ceiling_rounds):
             print(f"  ceiling round {r + 1}/{args.ceiling_rounds}", flush=True)
@@ -274,7 +281,7 @@ async def upload_loop(client: httpx.AsyncClient, path: Path, stop_at: float, rec
             with path.open("rb") as fh:
                 while chunk := fh.read(1 << 20):
                     yield chunk
-            sent["at"] = time.perf_counter()
+            sent["at"] = time.perf_counter()  # noqa: B023 (awaited within this iteration, before `sent` is rebound)
 
         start = time.perf_counter()
         response = await rec.call("POST /v1/datasets", client.post(
@@ -371,7 +378,8 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
         streams = [asyncio.create_task(stream_events(client, f"/v1/jobs/{job_id}/events", rec, delays))
                    for _ in range(args.sse)]
         bounded = [asyncio.create_task(poll(client, targets, i, stop_at, rec, args.rate)) for i in range(args.clients)]
-        bounded += [asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads)) for _ in range(args.uploads)]
+        bounded += [asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads))
+                    for _ in range(args.uploads)]
         try:
             while not all(t.done() for t in bounded):
                 await asyncio.wait(bounded, timeout=10)

@@ -134,7 +134,8 @@ def _attrs(cfg: CollectConfig, kind: str, arrays: dict[str, np.ndarray], behavio
         "policy_steps": np.asarray([s.step for s in behaviour], np.int64),
         "dataset_return": float(rets.mean()), "dataset_normalized_score": spec.normalized_score(float(rets.mean())),
         "episodes": int((arrays["terminals"] | arrays["timeouts"]).sum()),  # the last row always ends one
-        "medium_threshold": online.threshold, "medium_threshold_reached": bool(behaviour[0].mean_return >= online.threshold)
+        "medium_threshold": online.threshold,
+        "medium_threshold_reached": bool(behaviour[0].mean_return >= online.threshold)
         if kind.startswith("medium") else False,
         "train_steps": online.steps, "transitions_per_policy": cfg.transitions, "eval_episodes": online.eval_episodes,
         "drop_rl_version": drop_rl_version(), "behaviour": "stochastic SAC actor" if kind != "medium-replay"

@@ -56,7 +56,7 @@ class DynamicsConfig(_Strict):
         description="per hidden layer (the second-to-last repeats), the last for the heads")
 
     @model_validator(mode="after")
-    def _check(self) -> "DynamicsConfig":
+    def _check(self) -> DynamicsConfig:
         if self.elites > self.members:
             raise ValueError(f"elites ({self.elites}) cannot exceed members ({self.members})")
         return self
@@ -77,8 +77,8 @@ class SACConfig(_Strict):
                              "0 is plain SAC (the paper)")
     bc_action: Literal["mean", "sample"] = Field(
         "mean", description="what the behaviour term pulls to the data's action: the deterministic action tanh(mu(s)), "
-                            "as TD3+BC, or a reparameterised sample of the policy, which also keeps its spread near the "
-                            "data's (the stochastic policy is what rollouts and DICE see)")
+                            "as TD3+BC, or a reparameterised sample of the policy, which also keeps its spread near "
+                            "the data's (the stochastic policy is what rollouts and DICE see)")
     critic_layer_norm: bool = Field(
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "
@@ -113,7 +113,7 @@ class PenaltyConfig(_Strict):
     mopo_horizon: Horizon = 5
 
     @model_validator(mode="after")
-    def _check(self) -> "PenaltyConfig":
+    def _check(self) -> PenaltyConfig:
         if self.clip is not None and not 0 < self.clip[0] < self.clip[1]:
             raise ValueError(f"clip must satisfy 0 < low < high, got {self.clip}")
         return self

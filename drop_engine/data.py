@@ -221,7 +221,8 @@ def describe(dataset: Dataset) -> DatasetReport:
     return tally.report(dataset.obs_dim, dataset.act_dim, dataset.attrs, list(dataset.warnings))
 
 
-def save_hdf5(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict | None = None, compress: bool = True) -> None:
+def save_hdf5(path: str | Path, arrays: dict[str, np.ndarray], attrs: dict | None = None,
+              compress: bool = True) -> None:
     """Write D4RL layout (nested keys such as 'infos/qpos' become groups)."""
     import h5py
 
@@ -240,12 +241,12 @@ class Normalizer:
     std: np.ndarray
 
     @classmethod
-    def fit(cls, x: np.ndarray, eps: float = 1e-6) -> "Normalizer":
+    def fit(cls, x: np.ndarray, eps: float = 1e-6) -> Normalizer:
         std = x.std(0)
         return cls(x.mean(0).astype(np.float32), np.where(std < eps, 1.0, std).astype(np.float32))
 
     @classmethod
-    def identity(cls, dim: int) -> "Normalizer":
+    def identity(cls, dim: int) -> Normalizer:
         return cls(np.zeros(dim, np.float32), np.ones(dim, np.float32))
 
 

@@ -47,4 +47,5 @@ def evaluate(policy: PolicyFn, env: str, episodes: int = 10, seed: int = 0, vers
         for e in envs:
             e.close()
     mean = float(returns.mean())
-    return Evaluation(mean, float(returns.std()), get_env(env).normalized_score(mean), returns.tolist(), lengths.tolist())
+    return Evaluation(mean, float(returns.std()), get_env(env).normalized_score(mean), returns.tolist(),
+                      lengths.tolist())

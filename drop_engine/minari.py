@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .data_rows import BLOCK_BYTES, DataShape, DatasetLimits, read_rows
+from .data_rows import BLOCK_BYTES, DatasetLimits, DataShape, read_rows
 from .errors import DatasetError
 from .safe_hdf5 import SafeHDF5
 from .safe_zip import open_zip

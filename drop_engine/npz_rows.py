@@ -46,7 +46,8 @@ class NpyRows:
 
     def __getitem__(self, rows: slice) -> np.ndarray:
         start, stop = rows.start, min(rows.stop, self.shape[0])
-        if self._fortran:  # column-major: rows are not contiguous, so the array is read once (the caller has bounded it)
+        # Column-major: rows are not contiguous, so the array is read once (the caller has bounded it).
+        if self._fortran:
             if self._whole is None:
                 self._whole = np.frombuffer(self._bytes(math.prod(self.shape) * self.dtype.itemsize), self.dtype)
                 self._whole = self._whole.reshape(self.shape, order="F")

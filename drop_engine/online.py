@@ -127,7 +127,8 @@ class History:
     def __init__(self, obs_dim: int, act_dim: int, nq: int, nv: int, capacity: int = 1024):
         self.n = 0
         self.cols = {
-            "observations": np.zeros((capacity, obs_dim), np.float32), "actions": np.zeros((capacity, act_dim), np.float32),
+            "observations": np.zeros((capacity, obs_dim), np.float32),
+            "actions": np.zeros((capacity, act_dim), np.float32),
             "rewards": np.zeros(capacity, np.float32), "next_observations": np.zeros((capacity, obs_dim), np.float32),
             "terminals": np.zeros(capacity, bool), "timeouts": np.zeros(capacity, bool),
             "infos/qpos": np.zeros((capacity, nq)), "infos/qvel": np.zeros((capacity, nv)),
@@ -221,10 +222,12 @@ class OnlineSAC:
             return None
         state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
         if state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"{self.checkpoint_path}: checkpoint format {state.get('format')} is not {CHECKPOINT_FORMAT}")
+            raise ValueError(f"{self.checkpoint_path}: checkpoint format {state.get('format')} is not "
+                             f"{CHECKPOINT_FORMAT}")
         if state["config"] != self.cfg.identity():
             diff = sorted(k for k in state["config"] if state["config"][k] != self.cfg.identity().get(k))
-            raise ValueError(f"{self.checkpoint_path}: made with different settings ({', '.join(diff)}); use another --out")
+            raise ValueError(f"{self.checkpoint_path}: made with different settings ({', '.join(diff)}); "
+                             "use another --out")
         if state["step"] > self.cfg.steps:
             raise ValueError(f"{self.checkpoint_path}: already at step {state['step']} > --steps {self.cfg.steps}")
         return state
@@ -294,9 +297,10 @@ class OnlineSAC:
             self.last_episode_return, self.episode_return = self.episode_return, 0.0
             phys.reset(seed=self.cfg.seed + self.episodes)
 
-    def run(self, progress: Callable[["OnlineSAC"], None] | None = None,
+    def run(self, progress: Callable[[OnlineSAC], None] | None = None,
             should_stop: Callable[[], bool] | None = None) -> bool:
-        """Train to `cfg.steps`; True when finished, False when `should_stop` asked (a checkpoint is written either way).
+        """Train to `cfg.steps`; True when finished, False when `should_stop` asked (a checkpoint is written either
+        way).
 
         `progress(self)` is called every 100 steps and after each evaluation.
         """

@@ -15,7 +15,7 @@ class ReplayBuffer:
         self.data = {k: torch.zeros((capacity, *dims[k]), device=device) for k in FIELDS}
 
     @classmethod
-    def from_tensors(cls, **fields: torch.Tensor) -> "ReplayBuffer":
+    def from_tensors(cls, **fields: torch.Tensor) -> ReplayBuffer:
         obs = fields["obs"]
         buf = cls(len(obs), obs.shape[1], fields["act"].shape[1], obs.device)
         buf.add(**fields)

@@ -98,8 +98,9 @@ def _working_bytes(cfg: TrainConfig, shape: DataShape) -> int:
 
 def _metric_rows(cfg: TrainConfig) -> int:
     """Rows of metrics, following the trainer's reports: one row per dynamics epoch (counted when `max_epochs`
-    bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); per epoch the rollout statistics, the
-    time of each phase, and SAC's averages every `log_every` global steps and at each epoch end in between."""
+    bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); per
+    epoch the rollout statistics, the time of each phase, and SAC's averages every `log_every` global steps and at
+    each epoch end in between."""
     epochs, steps, every = cfg.epochs, cfg.steps_per_epoch, cfg.log_every
     drop = cfg.algorithm == "drop"
     n_real = round(cfg.sac.batch_size * cfg.sac.real_ratio)

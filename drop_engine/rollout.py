@@ -6,12 +6,12 @@ import torch
 from .config import PenaltyConfig
 from .dice import GradientDice
 from .dynamics import GaussianEnsemble
-from .termination import TerminationFn
 from .nn import RowsByMember, in_row_chunks
 from .penalties import penalized_reward
 from .replay_buffer import ReplayBuffer
 from .sac import Actor
 from .stopping import StopFlag, check, never
+from .termination import TerminationFn
 
 
 def sample_members(

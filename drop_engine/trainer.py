@@ -116,7 +116,8 @@ class Trainer:
         self.sac.set_obs_normalizer(norm.mean, norm.std)
         self.dice = None
         if config.algorithm == "drop":
-            self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice, config.dice_discount).to(dev)
+            self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice,
+                                     config.dice_discount).to(dev)
             self.dice.norm.set(norm.mean, norm.std)
         self.termination = self.spec.termination
         self.successors: torch.Tensor | None = None  # (elites, N, obs_dim), filled on first DICE use
@@ -188,7 +189,8 @@ class Trainer:
         self._load_rng_state(state["rng"])
 
     def checkpoint(self) -> Path:
-        path = save_checkpoint(self.state_dict(), self.ckpt_dir, self.epoch, self.step_in_epoch, self.cfg.keep_checkpoints)
+        path = save_checkpoint(self.state_dict(), self.ckpt_dir, self.epoch, self.step_in_epoch,
+                               self.cfg.keep_checkpoints)
         self.cb.on_checkpoint(path, self.epoch, self.step_in_epoch)
         return path
 
@@ -423,7 +425,8 @@ class Trainer:
         if self.best is None:
             why = ("the best evaluation's weights were not kept (the run resumed from a checkpoint of format 1)"
                    if self.evaluations else "no evaluation ran")
-            best = self._export("best", self.sac.actor, self.epoch, None, {"selected_by": f"{why}: this is the last policy"})
+            best = self._export("best", self.sac.actor, self.epoch, None,
+                                {"selected_by": f"{why}: this is the last policy"})
         else:
             actor = copy.deepcopy(self.sac.actor)  # not a new Actor: its initialisation would draw from the RNG
             actor.load_state_dict(self.best.state)

@@ -66,7 +66,10 @@ class DbCallback(Callback):
         if not changed and now - self._last_progress < PROGRESS_EVERY_S and step != total:
             return
         self._last_progress = now
-        fraction = round(step / total, 4) if phase == "train" and total else (1.0 if phase == "export" and step else 0.0)
+        if phase == "train" and total:
+            fraction = round(step / total, 4)
+        else:
+            fraction = 1.0 if phase == "export" and step else 0.0
         progress = {"phase": phase, "epoch": epoch, "step": step, "total": total, "fraction": fraction}
         with self.sessions.begin() as s:
             if s.execute(update(Job).where(self._mine()).values(progress=progress)).rowcount and changed:

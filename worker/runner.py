@@ -220,7 +220,8 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
         # next worker to start (or of any live one) sends it, because enqueued_at is cleared.
-        then = "will resume from checkpoint" if checkpointed else "will start over (stopped before its first checkpoint)"
+        then = ("will resume from checkpoint" if checkpointed
+                else "will start over (stopped before its first checkpoint)")
         if requeue(sessions, job_id, attempt, f"re-queued: its worker is shutting down; {then}"):
             return "requeued"
         if finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled while its worker was shutting down",

@@ -65,7 +65,8 @@ def _reaper_loop(slots: int) -> None:
 
 @setup_logging.connect
 def _keep_our_logging(**_) -> None:
-    """`drop worker` set up logging (kernel/logs.py) before Celery started; a receiver here stops Celery replacing it."""
+    """`drop worker` set up logging (kernel/logs.py) before Celery started; a receiver here stops Celery replacing
+    it."""
 
 
 @worker_ready.connect

@@ -1,12 +1,12 @@
 """initial schema
 
 Revision ID: 0001
-Revises: 
-Everything the service needs: owners and tokens, datasets, jobs and what a run reports (events, metrics, evaluations, checkpoints).
+Revises:
+Everything the service needs: owners and tokens, datasets, jobs and what a run reports (events, metrics, evaluations,
+checkpoints).
 """
-from alembic import op
 import sqlalchemy as sa
-
+from alembic import op
 
 revision = '0001'
 down_revision = None

@@ -5,8 +5,8 @@ Revises: 0001
 The job shows the epoch of its best evaluation (the `which=best` policy's) and a final score averaged over its last
 evaluations. Jobs already recorded get both from their stored evaluations, by the same rule the worker uses.
 """
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 # The rule as it was when this migration was written (drop_engine.scores then), copied so that a later change of
 # the rule does not change what this old migration computes.

@@ -9,8 +9,8 @@ Revises: 0002
 - On PostgreSQL a trigger sends NOTIFY drop_job_events with the job id after each new event, which wakes the API's
   event streams at once instead of their polling the table.
 """
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 revision = '0003'
 down_revision = '0002'

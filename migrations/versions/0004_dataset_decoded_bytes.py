@@ -6,8 +6,8 @@ A dataset counts toward its owner's storage quota at the larger of its file size
 of a float32 transition), so a small file that declares millions of rows counts for what it holds. Datasets already
 recorded get the decoded size of their report's transitions, by the rule the service uses.
 """
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 from drop_engine.data_rows import DataShape
 

@@ -46,7 +46,8 @@ def test_every_kind_passes_upload_validation_and_round_trips(collected):
         np.testing.assert_array_equal(dataset.terminals, arrays["terminals"])
         assert attrs["env_name"] == "Hopper-v4" and attrs["kind"] == kind and attrs["seed"] == 0
         assert attrs["drop_rl_version"] and np.isfinite(attrs["policy_return"])
-        assert attrs["policy_normalized_score"] == pytest.approx(get_env("hopper").normalized_score(attrs["policy_return"]))
+        score = get_env("hopper").normalized_score(attrs["policy_return"])
+        assert attrs["policy_normalized_score"] == pytest.approx(score)
         assert not (dataset.terminals & dataset.timeouts).any() and (dataset.terminals | dataset.timeouts)[-1]
         with h5py.File(path) as handle:
             assert handle["observations"].compression == "gzip"
@@ -72,7 +73,8 @@ def test_kinds_are_what_they_say(collected):
     medium, _ = read_arrays(out / "hopper-medium.hdf5")
     expert, _ = read_arrays(out / "hopper-expert.hdf5")
     mixed, _ = read_arrays(out / "hopper-medium-expert.hdf5")
-    np.testing.assert_array_equal(mixed["observations"], np.concatenate([medium["observations"], expert["observations"]]))
+    np.testing.assert_array_equal(mixed["observations"],
+                                  np.concatenate([medium["observations"], expert["observations"]]))
 
 
 def test_qpos_qvel_recompute_the_next_state(collected):
@@ -100,7 +102,8 @@ def test_collect_transitions_batches_envs_and_keeps_episodes_contiguous():
         assert len(arrays["rewards"]) == 300
         ends = arrays["terminals"] | arrays["timeouts"]
         # inside an episode each row starts where the previous one ended
-        np.testing.assert_array_equal(arrays["observations"][1:][~ends[:-1]], arrays["next_observations"][:-1][~ends[:-1]])
+        inside = ~ends[:-1]
+        np.testing.assert_array_equal(arrays["observations"][1:][inside], arrays["next_observations"][:-1][inside])
         assert ends[-1]
 
 

@@ -12,7 +12,8 @@ from drop_engine.envs import ENVS, get_env, termination_fn
 def test_termination_matches_env(env, version):
     spec = get_env(env)
     arrays = collect_transitions(env, random_policy(spec.act_dim, seed=1), 3000, seed=1, version=version)
-    predicted = spec.termination(*(torch.as_tensor(arrays[k]) for k in ("observations", "actions", "next_observations")))
+    predicted = spec.termination(*(torch.as_tensor(arrays[k])
+                                   for k in ("observations", "actions", "next_observations")))
     assert np.array_equal(predicted.numpy(), arrays["terminals"])
     if env != "halfcheetah":  # a random policy falls often, so both outcomes are exercised
         assert arrays["terminals"].sum() > 20

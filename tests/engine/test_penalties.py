@@ -35,7 +35,8 @@ def test_penalized_reward_per_algorithm():
     logvar = torch.zeros(3, 2, 4)  # std 1 in 4 dims: u = 2
     cfg = PenaltyConfig(eta=2.0, g="log", clip=(0.01, 10.0), bonus=False, mopo_lambda=0.5)
     r, pen = penalized_reward("drop", reward, cfg, tau, None)
-    assert pen.tolist() == pytest.approx([2 * math.log(4.0), 0.0]) and r.tolist() == pytest.approx((reward - pen).tolist())
+    assert pen.tolist() == pytest.approx([2 * math.log(4.0), 0.0])
+    assert r.tolist() == pytest.approx((reward - pen).tolist())
     r, pen = penalized_reward("mopo", reward, cfg, None, logvar)
     assert pen.tolist() == pytest.approx([1.0, 1.0]) and r.tolist() == pytest.approx([0.0, 0.0])
     r, pen = penalized_reward("mbpo", reward, cfg, None, None)

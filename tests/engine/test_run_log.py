@@ -13,7 +13,8 @@ def _history(out):
     lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     metrics = [(m.pop("step"), {k: v for k, v in m.items() if k != "time" and not k.startswith("time/")})
                for m in lines]
-    evaluations = [(int(r["epoch"]), float(r["normalized_score"])) for r in RunLog.read_evaluations(out / "evaluations.csv")]
+    evaluations = [(int(r["epoch"]), float(r["normalized_score"]))
+                   for r in RunLog.read_evaluations(out / "evaluations.csv")]
     return metrics, evaluations
 
 

@@ -1,7 +1,7 @@
 """A stop takes effect within seconds wherever the run is: inside a dynamics epoch, DICE training, the rollouts or an
 evaluation, each made long by its own settings. What is left is right: after a stop in the dynamics phase nothing (no
-checkpoint, no cached model), otherwise a checkpoint of the boundary before the phase (tests/engine/test_trainer.py shows a
-run resumed from it is exact)."""
+checkpoint, no cached model), otherwise a checkpoint of the boundary before the phase
+(tests/engine/test_trainer.py shows a run resumed from it is exact)."""
 from __future__ import annotations
 
 import time

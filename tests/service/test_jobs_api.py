@@ -10,7 +10,8 @@ PROBLEM = "application/problem+json"
 @pytest.fixture(scope="module")
 def dataset(client, tokens, hopper_file):
     with open(hopper_file, "rb") as fh:
-        r = client.post("/v1/datasets", files={"file": ("h.hdf5", fh)}, headers={"Authorization": f"Bearer {tokens['alice']}"})
+        r = client.post("/v1/datasets", files={"file": ("h.hdf5", fh)},
+                        headers={"Authorization": f"Bearer {tokens['alice']}"})
     return r.json()
 
 

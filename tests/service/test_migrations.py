@@ -60,7 +60,8 @@ def test_upgrade_fills_best_epoch_and_final_score_of_recorded_jobs(tmp_path):
                          {"epoch": epoch, "score": score})
     upgrade(url)
     with engine.connect() as conn:
-        rows = {r.id: (r.best_epoch, r.final_score) for r in conn.execute(text("SELECT id, best_epoch, final_score FROM jobs"))}
+        rows = {r.id: (r.best_epoch, r.final_score)
+                for r in conn.execute(text("SELECT id, best_epoch, final_score FROM jobs"))}
     engine.dispose()
     assert rows == {"job_evaluated": (1, 3.0), "job_queued": (None, None)}
 
@@ -69,8 +70,8 @@ def test_upgrade_fills_the_decoded_size_of_recorded_datasets(tmp_path):
     url, engine = _old_database(tmp_path, "0003")
     with engine.begin() as conn:
         conn.execute(text(
-            "INSERT INTO datasets (id, owner_id, name, format, sha256, size_bytes, path, env, obs_dim, act_dim, report, "
-            "created_at) VALUES ('ds_1', 'own_1', 'lazy', 'hdf5', '', 7000, '/x', 'hopper', 11, 3, "
+            "INSERT INTO datasets (id, owner_id, name, format, sha256, size_bytes, path, env, obs_dim, act_dim, "
+            "report, created_at) VALUES ('ds_1', 'own_1', 'lazy', 'hdf5', '', 7000, '/x', 'hopper', 11, 3, "
             "'{\"transitions\": 1000000}', CURRENT_TIMESTAMP)"))
     upgrade(url)
     with engine.connect() as conn:

@@ -32,7 +32,8 @@ def test_reaper(app, settings):
         unsent = _job(s, owner.id, status="queued", attempts=0, created_at=old)
         ids = [j.id for j in (crashed, last_try, alive, unsent)]
     sent: list[str] = []
-    assert sorted(reap(sessions, settings, lambda job_id, runtime: sent.append(job_id))) == sorted([crashed.id, unsent.id])
+    reaped = reap(sessions, settings, lambda job_id, runtime: sent.append(job_id))
+    assert sorted(reaped) == sorted([crashed.id, unsent.id])
     assert sorted(sent) == sorted([crashed.id, unsent.id])
     with sessions() as s:
         rows = {j.id: j for j in s.scalars(select(Job).where(Job.id.in_(ids)))}

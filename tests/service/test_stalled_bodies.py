@@ -92,7 +92,8 @@ def _wait_for_parts(data_dir: Path, count: int) -> None:
 
 STALLS = {
     "upload-short-of-its-length": ("/v1/datasets", {"Content-Length": "100000"}, b"\x89HDF\r\n\x1a\n" + bytes(992)),
-    "upload-chunked-never-ending": ("/v1/datasets", {"Transfer-Encoding": "chunked"}, b"400\r\n" + bytes(1024) + b"\r\n"),
+    "upload-chunked-never-ending": ("/v1/datasets", {"Transfer-Encoding": "chunked"},
+                                    b"400\r\n" + bytes(1024) + b"\r\n"),
     "job-post-short-of-its-length": ("/v1/jobs", {"Content-Length": "200", "Content-Type": "application/json"},
                                      b'{"dataset_id": '),
 }
@@ -132,7 +133,8 @@ def test_uploads_in_progress_are_bounded_per_owner_and_in_all(settings, tmp_path
         _wait_for_parts(data_dir, 3)
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as http:
             def upload(owner: str) -> httpx.Response:
-                return http.post("/v1/datasets", content=tiny_npz(0), headers={"Authorization": f"Bearer {tokens[owner]}"})
+                return http.post("/v1/datasets", content=tiny_npz(0),
+                                 headers={"Authorization": f"Bearer {tokens[owner]}"})
 
             for owner, setting in (("a", "DROP_MAX_UPLOADS_PER_OWNER"), ("b", "DROP_MAX_CONCURRENT_UPLOADS")):
                 r = upload(owner)
