@@ -27,6 +27,9 @@ class DropClient:
         self._owned = http is None
         self.http = http if http is not None else httpx.Client(base_url=server, timeout=timeout)
         self._auth = {"Authorization": f"Bearer {token}"} if token else {}
+        # An upload's answer waits for its validation (minutes for a large file): no read timeout, unless `http`
+        # brought timeouts of its own.
+        self._upload_timeout = httpx.Timeout(timeout, read=None) if self._owned else httpx.USE_CLIENT_DEFAULT
 
     def close(self) -> None:
         if self._owned:
@@ -56,18 +59,13 @@ class DropClient:
                 return
             after = page["next_after"]
 
-    def _patient(self) -> httpx.Timeout:
-        """The client's timeouts without the read one: an upload's answer waits for its validation."""
-        t = self.http.timeout
-        return httpx.Timeout(connect=t.connect, read=None, write=t.write, pool=t.pool)
-
     # Datasets
 
     def upload_dataset(self, path: str | Path, *, name: str | None = None) -> dict:
         """Upload a D4RL-layout .hdf5 or .npz, or a zipped Minari dataset; the validated dataset with its report."""
         path = Path(path)
         with path.open("rb") as fh:
-            return self._request("POST", "/v1/datasets", params=_given(name=name), timeout=self._patient(),
+            return self._request("POST", "/v1/datasets", params=_given(name=name), timeout=self._upload_timeout,
                                  files={"file": (path.name, fh, "application/octet-stream")}).json()
 
     def list_datasets(self) -> Iterator[dict]:
@@ -105,6 +103,10 @@ class DropClient:
         """The job's events so far after event `after`, oldest first."""
         return self._pages(f"/v1/jobs/{job_id}/events", {"limit": 1000, **_given(after=after or None)})
 
+    def list_evaluations(self, job_id: str) -> list[dict]:
+        """The job's evaluations in the real env so far: epoch, mean return, D4RL normalised score."""
+        return list(self._pages(f"/v1/jobs/{job_id}/evaluations", {}))
+
     def stream_events(self, job_id: str, last_event_id: int | None = None) -> Iterator[dict]:
         """The job's events after `last_event_id` (all when None) as they happen, until the job ends. Raises
         `StreamInterrupted`, naming the last event received, if the connection ends first."""
@@ -116,6 +118,8 @@ class DropClient:
                 for sse in EventSource(response).iter_sse():
                     if sse.event == "end":
                         return
+                    if not sse.data:  # the keep-alive comment: httpx-sse reports it as an empty event
+                        continue
                     event = sse.json()
                     last_event_id = event["id"]
                     yield event
@@ -126,7 +130,7 @@ class DropClient:
         raise StreamInterrupted(job_id, last_event_id)
 
     def wait(self, job_id: str, *, until: Callable[[dict], bool] | None = None, timeout: float | None = None,
-             poll_s: float = 1.0, progress: Callable[[dict], None] | None = None) -> dict:
+             poll_s: float = 0.5, progress: Callable[[dict], None] | None = None) -> dict:
         """Poll the job until it has finished, or until `until(job)` holds, and return it. `progress(job)` is
         called whenever its status or progress changes (`print_progress` prints a line). Polling, unlike a stream,
         carries on across a restart of the API."""
