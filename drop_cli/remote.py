@@ -3,6 +3,7 @@ the problem's status, code and detail and exit 1."""
 from __future__ import annotations
 
 import functools
+import sys
 from typing import Callable, get_args
 
 import click
@@ -123,7 +124,7 @@ def jobs_list(client: DropClient, status: str | None) -> None:
 def jobs_status(client: DropClient, job_id: str) -> None:
     """Show a job: status, progress, scores, error."""
     job = client.get_job(job_id)
-    print_progress(job, click.get_text_stream("stdout"))
+    print_progress(job, sys.stdout)
     fields = {"dataset": job["dataset_id"], "algorithm": job["algorithm"], "env": job["env"],
               "preset": job["preset"], "seed": job["seed"], "attempts": f"{job['attempts']}/{job['max_attempts']}",
               "best epoch": job["best_epoch"], "final score": job["final_score"], "created": job["created_at"],

@@ -127,6 +127,13 @@ def test_cli(deployment, hopper_file, tmp_path):
     meta = drop("jobs", "download", job_id, "--which", "best", "--format", "metadata", "--out", str(tmp_path))
     assert json.loads((tmp_path / f"{job_id}-best-metadata.json").read_text())["which"] == "best", meta.output
 
+    # --wait prints the job's progress and exits 1 unless it succeeded: this one runs past its time limit.
+    late = drop("jobs", "submit", "--dataset", ds_id, "--preset", "cpu", "--max-runtime-s", "5", "--wait")
+    assert late.exit_code == 1, late.output
+    late_id = late.stdout.strip()
+    assert f"{late_id}: failed, timeout: the attempt ran past max_runtime_s=5" in late.stderr
+    assert f"job {late_id} failed (timeout: the attempt ran past max_runtime_s=5)" in late.stderr
+
     # Errors: the problem's status, code and detail, and exit status 1 (2 for a usage error).
     cancel = drop("jobs", "cancel", job_id)
     assert cancel.exit_code == 1 and f"409 job_finished: job {job_id} has already finished" in cancel.stderr
