@@ -10,7 +10,7 @@ from drop_engine.cli import Group, engine, run
 from .remote import datasets, jobs
 
 
-@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Group)
 @click.version_option(package_name="drop-rl", prog_name="drop")
 def drop() -> None:
     """DROP offline RL: train and evaluate policies here, run the service, or use a server from anywhere."""

@@ -125,10 +125,11 @@ def jobs_status(client: DropClient, job_id: str) -> None:
     """Show a job: status, progress, scores, error."""
     job = client.get_job(job_id)
     print_progress(job, sys.stdout)
+    final = job["final_score"]
     fields = {"dataset": job["dataset_id"], "algorithm": job["algorithm"], "env": job["env"],
               "preset": job["preset"], "seed": job["seed"], "attempts": f"{job['attempts']}/{job['max_attempts']}",
-              "best epoch": job["best_epoch"], "final score": job["final_score"], "created": job["created_at"],
-              "started": job["started_at"], "finished": job["finished_at"]}
+              "best epoch": job["best_epoch"], "final score": None if final is None else f"{final:.1f}",
+              "created": job["created_at"], "started": job["started_at"], "finished": job["finished_at"]}
     for key, value in fields.items():
         if value is not None:
             click.echo(f"  {key:<12} {value}")

@@ -27,10 +27,15 @@ class _Command(click.Command):
 
 
 class Group(click.Group):
-    """A group whose commands return their exit codes; its subgroups are of this class too."""
+    """A group whose commands return their exit codes, and which, as argparse did, also takes -h for help; its
+    subgroups are of this class too."""
 
     command_class = _Command
     group_class = type
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("context_settings", {"help_option_names": ["-h", "--help"]})
+        super().__init__(*args, **kwargs)
 
 
 def run(group: click.Group, argv: list[str] | None = None) -> int:
@@ -72,7 +77,7 @@ def write_curve(run_dir: Path) -> Path:
     return path
 
 
-@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Group)
 @click.version_option(package_name="drop-rl", prog_name="drop")
 def engine() -> None:
     """DROP offline RL: train, evaluate and plot policies, and make datasets."""

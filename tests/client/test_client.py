@@ -12,7 +12,8 @@ from drop_client import (ApiError, Conflict, DropClient, DropError, NetworkError
 
 
 def _client(handler, token: str | None = "secret") -> DropClient:
-    return DropClient(token=token, http=httpx.Client(base_url="http://drop.test", transport=httpx.MockTransport(handler)))
+    http = httpx.Client(base_url="http://drop.test", transport=httpx.MockTransport(handler))
+    return DropClient(token=token, http=http)
 
 
 def _problem(status: int, code: str, detail: str, **extra) -> httpx.Response:
