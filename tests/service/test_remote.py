@@ -30,7 +30,7 @@ def deployment(request, tmp_path_factory):
         finally:
             serve.stop()
         return
-    from app.db import upgrade
+    from kernel.db import upgrade
 
     settings = request.getfixturevalue("settings")
     with database() as url:
