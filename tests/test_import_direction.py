@@ -1,8 +1,9 @@
 """Imports point one way: `app -> kernel <- worker`, all three -> `drop_engine`, and the engine knows nothing of the
-service (docs/ARCHITECTURE.md). Read from the source's syntax trees, imports inside functions included, so a lazy
-import cannot hide a dependency; and no module imports another that imports it back. The dependencies pyproject.toml
-declares match the imports: the engine needs only the base ones (`pip install drop-rl`), the service also its extra,
-and nothing declared goes unused."""
+service; `drop_client` stands alone, and `drop_cli` sits on top of the engine, `app` and the client
+(docs/ARCHITECTURE.md). Read from the source's syntax trees, imports inside functions included, so a lazy import
+cannot hide a dependency; and no module imports another that imports it back. The dependencies pyproject.toml declares
+match the imports: the engine, the client and the command need only the base ones (`pip install drop-rl`), the
+service also its extra, and nothing declared goes unused."""
 from __future__ import annotations
 
 import ast
@@ -15,14 +16,17 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("drop_engine", "kernel", "app", "worker")
+PACKAGES = ("drop_engine", "kernel", "app", "worker", "drop_client", "drop_cli")
+ABOVE = {"drop_client", "drop_cli"}  # only drop_cli imports the client, and nothing imports drop_cli
 SERVICE_LIBRARIES = {"fastapi", "starlette", "uvicorn", "sqlalchemy", "alembic", "celery", "kombu", "psycopg", "redis",
                      "pydantic_settings", "prometheus_client", "structlog", "python_multipart"}
 FORBIDDEN = {
-    "drop_engine": {"kernel", "app", "worker"} | SERVICE_LIBRARIES,
-    "kernel": {"app", "worker"},
-    "worker": {"app"},
-    "app": {"worker"},
+    "drop_engine": {"kernel", "app", "worker"} | SERVICE_LIBRARIES | ABOVE,
+    "kernel": {"app", "worker"} | ABOVE,
+    "worker": {"app"} | ABOVE,
+    "app": {"worker"} | ABOVE,
+    "drop_client": {"drop_engine", "kernel", "app", "worker", "drop_cli"},
+    "drop_cli": {"kernel", "worker"},
 }
 
 
@@ -84,8 +88,9 @@ def test_the_modules_import_no_cycle():
         visit(module, [])
 
 
-NEEDS = {"drop_engine": ("dependencies",), "kernel": ("dependencies", "service"), "app": ("dependencies", "service"),
-         "worker": ("dependencies", "service")}
+SERVICE = ("dependencies", "service")
+NEEDS = {"drop_engine": ("dependencies",), "drop_client": ("dependencies",), "drop_cli": ("dependencies",),
+         "kernel": SERVICE, "app": SERVICE, "worker": SERVICE}
 # Imported, not declared: FastAPI is built on Starlette and pins its version.
 COMES_WITH = {"starlette": "fastapi"}
 # Declared, never imported: torch.onnx.export writes the policy's ONNX file with onnx.
@@ -135,15 +140,18 @@ def test_every_declared_dependency_is_imported(project):
     assert not unused, f"declared in pyproject.toml but imported nowhere: {unused}"
 
 
-def test_the_engine_and_its_commands_run_without_the_service_extra():
-    """As after `pip install drop-rl`: every engine module imports, and `drop train --help` answers, with the service's
-    libraries made unimportable."""
+def test_the_library_and_the_command_run_without_the_service_extra():
+    """As after `pip install drop-rl`, with the service's libraries made unimportable: every module of the engine and
+    of the client imports, the engine's and the remote commands answer, and a service command says what to install."""
     code = ("import importlib, pkgutil, sys\n"
             f"sys.modules.update(dict.fromkeys({sorted(SERVICE_LIBRARIES)!r}))\n"
-            "import drop_engine\n"
-            "for m in pkgutil.walk_packages(drop_engine.__path__, 'drop_engine.'):\n"
-            "    importlib.import_module(m.name)\n"
-            "from app.cli import main\n"
-            "main(['train', '--help'])\n")
+            "import drop_client, drop_engine\n"
+            "for package in (drop_engine, drop_client):\n"
+            "    for m in pkgutil.walk_packages(package.__path__, package.__name__ + '.'):\n"
+            "        importlib.import_module(m.name)\n"
+            "from drop_cli import main\n"
+            "print(main(['train', '--help']), main(['jobs', 'submit', '--help']), main(['db', 'upgrade']))\n")
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0 and "--dataset" in done.stdout, done.stderr[-4000:]
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert "--dataset" in done.stdout and done.stdout.splitlines()[-1] == "0 0 2", done.stdout
+    assert "is not installed; the service's commands need `pip install 'drop-rl[service]'`" in done.stderr, done.stderr

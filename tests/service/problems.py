@@ -1,5 +1,12 @@
-"""Checking a problem+json answer."""
+"""Refused requests: the answer to an upload that must fail, and checking a problem+json answer."""
 from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+import pytest
+
+from drop_client import ApiError, DropClient
 
 PROBLEM = "application/problem+json"
 
@@ -14,3 +21,10 @@ def assert_problem(r, status: int, *needles: str) -> dict:
         assert needle in body["detail"], body
     assert "Traceback" not in r.text
     return body
+
+
+def upload_refused(api: DropClient, path: Path) -> httpx.Response:
+    """The answer to an upload that must fail."""
+    with pytest.raises(ApiError) as refused:
+        api.upload_dataset(path)
+    return refused.value.response

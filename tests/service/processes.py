@@ -1,5 +1,6 @@
 """The service's processes in tests: the environment that gives a subprocess the test's settings, a free port,
-waiting for a process to be ready, and starting, crashing and stopping a `drop worker`."""
+waiting for a process to be ready; starting, crashing and stopping a `drop worker`, a `drop api` and a `drop serve`;
+and when a job is far enough along to survive its process being killed."""
 from __future__ import annotations
 
 import os
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import httpx
 
+from drop_client import DropClient
 from kernel.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,3 +89,61 @@ def stop_worker(proc: subprocess.Popen) -> None:
         proc.wait(20)
     except subprocess.TimeoutExpired:
         kill_group(proc)
+
+
+def past_first_epoch(job: dict) -> bool:
+    """A `wait` condition: the job is running and has trained an epoch, so it has a checkpoint to resume from."""
+    return job["status"] == "running" and (job["progress"] or {}).get("epoch", 0) >= 1
+
+
+class Api:
+    """`drop api` over `settings` on a port of its own, in a process of its own."""
+
+    def __init__(self, settings: Settings, log: Path):
+        self.port, self.env, self.log, self.proc = free_port(), settings_env(settings), log, None
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        with self.log.open("ab") as out:
+            self.proc = subprocess.Popen([sys.executable, "-m", "drop_cli", "api", "--host", "127.0.0.1",
+                                          "--port", str(self.port)], cwd=REPO, env=self.env, stdout=out,
+                                         stderr=subprocess.STDOUT)
+        with httpx.Client(base_url=self.url) as http:
+            wait_ready(http, self.proc, self.log)
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(20)
+
+
+class Serve:
+    """`drop serve` with a data directory under `tmp_path` and nothing else: SQLite, the filesystem broker, no auth."""
+
+    def __init__(self, tmp_path: Path):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("DROP_")}
+        self.env.update(DROP_DATA_DIR=str(tmp_path / "data"), DROP_WORKER_THREADS="1")
+        self.log_path = tmp_path / "serve.log"
+        self.proc = None
+
+    def start(self) -> DropClient:
+        with self.log_path.open("ab") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "drop_cli", "serve", "--port", str(self.port)],
+                                         cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT)
+        drop = DropClient(self.url)
+        wait_ready(drop.http, self.proc, self.log_path)
+        return drop
+
+    def stop(self, sig: signal.Signals = signal.SIGINT, timeout: float = 60) -> int:
+        self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from .datasets import d4rl_arrays, minari_zip
-from .problems import assert_problem
+from .problems import assert_problem, upload_refused
 
 
 def _write(path: Path, arrays: dict) -> Path:
@@ -24,19 +24,19 @@ def _write(path: Path, arrays: dict) -> Path:
 def test_truncated_hdf5(alice, clean, hopper_file, tmp_path):
     bad = tmp_path / "truncated.hdf5"
     bad.write_bytes(hopper_file.read_bytes()[: hopper_file.stat().st_size // 2])
-    assert_problem(alice.upload(bad), 422)
+    assert_problem(upload_refused(alice.api, bad), 422)
 
 
 def test_wrong_keys(alice, clean, tmp_path):
     arrays = d4rl_arrays()
     arrays["acts"] = arrays.pop("actions")
-    assert_problem(alice.upload(_write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
+    assert_problem(upload_refused(alice.api, _write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
 
 
 def test_nans(alice, clean, tmp_path):
     arrays = d4rl_arrays()
     arrays["rewards"][[3, 7]] = np.nan
-    assert_problem(alice.upload(_write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
+    assert_problem(upload_refused(alice.api, _write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
 
 
 def test_not_a_dataset(alice, clean):
