@@ -8,9 +8,22 @@ API. Needs only httpx and httpx-sse; it imports nothing of the service or the en
         drop.download_policy(job["id"], "policy.pt", which="best")
 """
 from .client import DEFAULT_SERVER, FINISHED, DropClient, PolicyFormat, Which, print_progress
-from .errors import (ApiError, BadRequest, Conflict, DropError, NetworkError, NotFound, PayloadTooLarge,
-                     RateLimited, ServerError, StreamInterrupted, Unauthorized, Unprocessable, WaitTimeout)
+from .errors import (
+    ApiError,
+    BadRequest,
+    Conflict,
+    DropError,
+    NetworkError,
+    NotFound,
+    PayloadTooLarge,
+    RateLimited,
+    ServerError,
+    StreamInterrupted,
+    Unauthorized,
+    Unprocessable,
+    WaitTimeout,
+)
 
-__all__ = ["DEFAULT_SERVER", "FINISHED", "DropClient", "PolicyFormat", "Which", "print_progress", "ApiError", "BadRequest", "Conflict",
-           "DropError", "NetworkError", "NotFound", "PayloadTooLarge", "RateLimited", "ServerError",
-           "StreamInterrupted", "Unauthorized", "Unprocessable", "WaitTimeout"]
+__all__ = ["DEFAULT_SERVER", "FINISHED", "DropClient", "PolicyFormat", "Which", "print_progress", "ApiError",
+           "BadRequest", "Conflict", "DropError", "NetworkError", "NotFound", "PayloadTooLarge", "RateLimited",
+           "ServerError", "StreamInterrupted", "Unauthorized", "Unprocessable", "WaitTimeout"]

@@ -19,9 +19,9 @@ from ..core.problems import Problem
 from ..observability.metrics import UPLOAD_BYTES, VALIDATION_SECONDS
 from ..owners import quotas
 from ..owners.lock import lock_owner
+from .schemas import dataset as dataset_dict
 from .upload import Upload, receive
 from .validate import Invalid
-from .schemas import dataset as dataset_dict
 
 
 def owned_dataset(s: Session, owner_id: str, dataset_id: str) -> Dataset:

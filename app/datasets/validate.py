@@ -44,7 +44,7 @@ class Limits:
     timeout: float
 
     @classmethod
-    def of(cls, settings: Settings) -> "Limits":
+    def of(cls, settings: Settings) -> Limits:
         zip_bytes = 4 * settings.max_upload_bytes
         return cls(DatasetLimits(settings.max_dataset_rows, settings.max_dataset_bytes, zip_bytes),
                    max(zip_bytes, settings.max_dataset_bytes) + (16 << 20), settings.validate_memory_bytes,

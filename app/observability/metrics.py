@@ -11,8 +11,7 @@ import functools
 import os
 from typing import Awaitable, Callable, ParamSpec, TypeVar
 
-from prometheus_client import (REGISTRY, CollectorRegistry, Counter, Histogram, disable_created_metrics,
-                               generate_latest)
+from prometheus_client import REGISTRY, CollectorRegistry, Counter, Histogram, disable_created_metrics, generate_latest
 from prometheus_client.multiprocess import MultiProcessCollector
 from prometheus_client.registry import Collector
 

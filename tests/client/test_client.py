@@ -7,8 +7,18 @@ import json
 import httpx
 import pytest
 
-from drop_client import (ApiError, Conflict, DropClient, DropError, NetworkError, RateLimited, ServerError,
-                         StreamInterrupted, Unprocessable, WaitTimeout)
+from drop_client import (
+    ApiError,
+    Conflict,
+    DropClient,
+    DropError,
+    NetworkError,
+    RateLimited,
+    ServerError,
+    StreamInterrupted,
+    Unprocessable,
+    WaitTimeout,
+)
 
 
 def _client(handler, token: str | None = "secret") -> DropClient:

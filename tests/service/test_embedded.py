@@ -67,7 +67,8 @@ def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file, sig):
     _assert_ended(tree)
     with sqlite3.connect(tmp_path / "data" / "drop.db") as db:
         assert db.execute("SELECT status FROM jobs WHERE id = ?", (job["id"],)).fetchone() == ("queued",)
-        checkpoints = [Path(p) for (p,) in db.execute("SELECT path FROM job_checkpoints WHERE job_id = ?", (job["id"],))]
+        rows = db.execute("SELECT path FROM job_checkpoints WHERE job_id = ?", (job["id"],))
+        checkpoints = [Path(p) for (p,) in rows]
     assert checkpoints and all(p.is_file() for p in checkpoints)
 
     drop = serve.start()

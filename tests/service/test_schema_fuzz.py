@@ -9,9 +9,15 @@ from __future__ import annotations
 import hypothesis
 import pytest
 import schemathesis
-from hypothesis import HealthCheck, strategies as st
-from schemathesis.checks import (content_type_conformance, negative_data_rejection, not_a_server_error,
-                                 response_schema_conformance, status_code_conformance)
+from hypothesis import HealthCheck
+from hypothesis import strategies as st
+from schemathesis.checks import (
+    content_type_conformance,
+    negative_data_rejection,
+    not_a_server_error,
+    response_schema_conformance,
+    status_code_conformance,
+)
 from schemathesis.generation import GenerationMode
 
 from .datasets import tiny_npz
