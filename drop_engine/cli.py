@@ -162,18 +162,25 @@ def plot(runs: tuple[str, ...], out: str, title: str) -> int:
 
 @engine.command()
 @click.option("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")
-@click.option("--env", default="hopper", show_default=True)
-@click.option("--env-version", default="v4", show_default=True, type=ENV_VERSIONS)
+@click.option("--env", default=None, help="default: the env in metadata.json beside the policy, else hopper")
+@click.option("--env-version", default=None, type=ENV_VERSIONS,
+              help="default: the version of the gym id in metadata.json beside the policy, else v4")
 @click.option("--episodes", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
-def evaluate(policy: str, env: str, env_version: str, episodes: int, seed: int) -> int:
-    """Evaluate an exported policy in the real env."""
+def evaluate(policy: str, env: str | None, env_version: str | None, episodes: int, seed: int) -> int:
+    """Evaluate an exported policy in the real env it was trained for."""
+    from .envs import DEFAULT_VERSION, gym_version
     from .evaluation import evaluate as run_episodes
     from .export import load_policy
 
+    meta_path = Path(policy).with_name("metadata.json")
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    env = env or meta.get("env") or "hopper"
+    env_version = env_version or gym_version(meta.get("gym_id", "")) or DEFAULT_VERSION
     result = run_episodes(load_policy(policy), env, episodes, seed, env_version)
-    print(json.dumps({"mean_return": result.mean_return, "std_return": result.std_return,
-                      "normalized_score": result.normalized_score, "returns": result.returns}, indent=2))
+    print(json.dumps({"env": env, "env_version": env_version, "mean_return": result.mean_return,
+                      "std_return": result.std_return, "normalized_score": result.normalized_score,
+                      "returns": result.returns}, indent=2))
     return 0
 
 
