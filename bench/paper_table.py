@@ -7,8 +7,10 @@ over seeds, beside the behaviour policy's own score.
     python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu] [--jobs 2]
 
 Finished runs are kept in bench/results/paper_table.json, so the table fills up across machines and sessions: a run
-already recorded there with the same preset and overrides is not repeated (the datasets are seeded, so `make
-bench-data` remakes the same files).
+already recorded there with the same preset, overrides and dataset content is not repeated. `make bench-data` is
+seeded, but the same seed collects other files on other CPUs (their floating-point kernels differ), so every record
+carries its dataset's content hash and the table shows, for each dataset, only the runs on the file whose behaviour
+score it prints.
 """
 from __future__ import annotations
 
@@ -39,8 +41,8 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 REVISION = 2
 
 
-def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
-    run_dir = runs / f"{env}-{kind}" / f"{algorithm}-{seed}"
+def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
+    run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{algorithm}-{seed}"
     done = run_dir / "result.json"
     if done.exists():
         return json.loads(done.read_text())
@@ -59,7 +61,7 @@ def run_one(data_path: Path, env: str, kind: str, algorithm: str, seed: int, arg
             raise SystemExit(f"{run_dir}: stopped before the end")
         record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
                   "evaluations": result.evaluations, "dynamics": result.dynamics}
-    record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed,
+    record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
                    "seconds": time.perf_counter() - start})
     done.write_text(json.dumps(record, indent=2))
     return record
@@ -69,10 +71,22 @@ def key(r: dict) -> tuple:
     return r["env"], r["kind"], r["algorithm"], r["seed"]
 
 
-def behaviour_score(path: Path) -> float | None:
-    attrs = load_dataset(path).attrs
-    value = attrs.get("dataset_normalized_score")
-    return float(value) if value is not None else None
+def describe(path: Path) -> dict:
+    """The file's behaviour score and content hash: what a record must match to be counted for this dataset."""
+    data = load_dataset(path)
+    value = data.attrs.get("dataset_normalized_score")
+    return {"score": float(value) if value is not None else None, "dataset": data.content_hash}
+
+
+def described(entry: float | dict | None) -> dict:
+    """A behaviour entry; files of before content hashes stored the bare score, and match records without one."""
+    return entry if isinstance(entry, dict) else {"score": entry, "dataset": None}
+
+
+def on_file(records: list[dict], behaviour: dict[str, dict]) -> list[dict]:
+    """The records made on the very file each dataset's behaviour entry describes."""
+    return [r for r in records if (d := behaviour.get(f"{r['env']}-{r['kind']}")) is not None
+            and r.get("dataset") == d["dataset"]]
 
 
 def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
@@ -133,21 +147,20 @@ def main(argv: list[str] | None = None) -> int:
     results = out / "paper_table.json"
     same_setting = {"preset": args.preset, "set": sorted(args.set), "revision": REVISION}
     kept = json.loads(results.read_text()) if results.exists() else {}
-    done = {key(r) for r in kept.get("records", []) if r["setting"] == same_setting}
-    behaviour: dict[str, float | None] = {}
+    behaviour: dict[str, dict] = {}
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
     runs = Path(args.runs) / "_".join([f"{args.preset}-r{REVISION}", *same_setting["set"]]).replace("/", "-")
 
-    todo = []
-    for env in args.envs:
-        for kind in args.kinds:
-            path = Path(args.data) / f"{env}-{kind}.hdf5"
-            if not path.exists():
-                raise SystemExit(f"{path} is missing: run `make bench-data` first")
-            behaviour[f"{env}-{kind}"] = behaviour_score(path)
-            # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
-            todo += [(path, env, kind, algorithm, seed) for seed in args.seeds for algorithm in args.algorithms
-                     if (env, kind, algorithm, seed) not in done]
+    paths = {(env, kind): Path(args.data) / f"{env}-{kind}.hdf5" for env in args.envs for kind in args.kinds}
+    for (env, kind), path in paths.items():
+        if not path.exists():
+            raise SystemExit(f"{path} is missing: run `make bench-data` first")
+        behaviour[f"{env}-{kind}"] = describe(path)
+    done = {key(r) for r in on_file(kept.get("records", []), behaviour) if r["setting"] == same_setting}
+    # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
+    todo = [(path, behaviour[f"{env}-{kind}"]["dataset"], env, kind, algorithm, seed)
+            for (env, kind), path in paths.items() for seed in args.seeds for algorithm in args.algorithms
+            if (env, kind, algorithm, seed) not in done]
 
     def write(record: dict | None = None) -> str:
         """Merge into the file as it is now (another invocation may be filling other rows), under a lock."""
@@ -157,16 +170,16 @@ def main(argv: list[str] | None = None) -> int:
             merged = [r for r in now.get("records", [])
                       if record is None or not (r["setting"] == same_setting and key(r) == key(record))]
             merged += [{**record, "setting": same_setting}] if record else []
-            scores = {**now.get("behaviour", {}), **behaviour}
+            scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             tmp = results.with_suffix(".tmp")  # renamed in whole: a reader never sees half a file
             tmp.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
             tmp.replace(results)
-        mine = sorted((r for r in merged if r["setting"] == same_setting), key=key)
+        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == same_setting), key=key)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine}
         overrides = " ".join(same_setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
-                + table(mine, {d: v for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
+                + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
         (out / "paper_table.md").write_text(text)
         return text
 
