@@ -13,6 +13,8 @@ COPY drop_engine ./drop_engine
 COPY kernel ./kernel
 COPY app ./app
 COPY worker ./worker
+COPY drop_client ./drop_client
+COPY drop_cli ./drop_cli
 COPY migrations ./migrations
 COPY alembic.ini ./
 # torch==2.13.0 from constraints.txt; point PIP_EXTRA_INDEX_URL at a CPU-only wheel index for a smaller image.

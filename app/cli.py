@@ -1,7 +1,7 @@
-"""`drop`: the engine's commands (train, evaluate) plus the service's: serve, api, worker, token, db upgrade."""
+"""The service's commands: serve, api, worker, token, db upgrade. The `drop` command (drop_cli) adds them to the
+engine's; `python -m app.cli` runs them alone, as `drop serve` does for its worker."""
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import sys
@@ -9,7 +9,9 @@ import tempfile
 from contextlib import contextmanager
 from typing import Iterator
 
-from drop_engine.cli import build_parser as engine_parser
+import click
+
+from drop_engine.cli import Group, run
 
 from .serving.procs import SUPERVISOR_ENV, serve_worker
 
@@ -39,7 +41,23 @@ def _check_migrated(settings) -> bool:
     return True
 
 
-def cmd_db_upgrade(args: argparse.Namespace) -> int:
+@click.group(cls=Group)
+def service() -> None:
+    """The drop-rl service."""
+
+
+@service.group()
+def db() -> None:
+    """Database."""
+
+
+@db.command("upgrade")
+def db_upgrade() -> int:
+    """Apply migrations up to the newest."""
+    return _upgrade_db()
+
+
+def _upgrade_db() -> int:
     from kernel.db import upgrade
 
     settings = _settings()
@@ -49,8 +67,8 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
     return 0
 
 
-def _with_sessions(run) -> int:
-    """Run `run(sessionmaker)` against the configured database, once it is at the newest migration."""
+def _with_sessions(use) -> int:
+    """Run `use(sessionmaker)` against the configured database, once it is at the newest migration."""
     from kernel.db import make_engine, make_sessionmaker
 
     settings = _settings()
@@ -58,50 +76,64 @@ def _with_sessions(run) -> int:
         return 2
     engine = make_engine(settings.sqlalchemy_url)
     try:
-        return run(make_sessionmaker(engine))
+        return use(make_sessionmaker(engine))
     finally:
         engine.dispose()
 
 
-def cmd_token_create(args: argparse.Namespace) -> int:
+@service.group()
+def token() -> None:
+    """API tokens."""
+
+
+@token.command("create")
+@click.option("--name", required=True, help="the owner (created if new)")
+def token_create(name: str) -> int:
+    """Create a token for an owner and print it once."""
     from .core.auth import create_token
 
-    def run(sessions) -> int:
-        print(create_token(sessions, args.name))
+    def create(sessions) -> int:
+        print(create_token(sessions, name))
         return 0
 
-    return _with_sessions(run)
+    return _with_sessions(create)
 
 
-def cmd_token_list(args: argparse.Namespace) -> int:
+@token.command("list")
+@click.option("--owner", help="only this owner's tokens")
+def token_list(owner: str | None) -> int:
+    """List tokens: ids, owners, when created and revoked; never the secrets."""
     from .core.auth import list_tokens
     from .core.pages import iso
 
-    def run(sessions) -> int:
-        rows = list_tokens(sessions, args.owner)
+    def show(sessions) -> int:
+        rows = list_tokens(sessions, owner)
         print(f"{'id':<30} {'owner':<20} {'created':<28} revoked")
-        for token, owner in rows:
-            print(f"{token.id:<30} {owner:<20} {iso(token.created_at):<28} {iso(token.revoked_at) or '-'}")
+        for row, row_owner in rows:
+            print(f"{row.id:<30} {row_owner:<20} {iso(row.created_at):<28} {iso(row.revoked_at) or '-'}")
         return 0
 
-    return _with_sessions(run)
+    return _with_sessions(show)
 
 
-def cmd_token_revoke(args: argparse.Namespace) -> int:
+@token.command("revoke")
+@click.argument("id_or_token", metavar="ID_OR_TOKEN")
+def token_revoke(id_or_token: str) -> int:
+    """Revoke a token at once, by id, the start of an id, or the token itself."""
     from .core.auth import TokenNotFound, revoke_token
     from .core.pages import iso
 
-    def run(sessions) -> int:
+    def revoke(sessions) -> int:
         try:
-            token = revoke_token(sessions, args.token)
+            revoked = revoke_token(sessions, id_or_token)
         except TokenNotFound as exc:
             print(f"drop: {exc}", file=sys.stderr)
             return 2
-        print(f"token {token.id} revoked at {iso(token.revoked_at)}; the API refuses it within "
+        print(f"token {revoked.id} revoked at {iso(revoked.revoked_at)}; the API refuses it within "
               f"DROP_TOKEN_CACHE_S ({_settings().token_cache_s:g} s)")
         return 0
 
-    return _with_sessions(run)
+    return _with_sessions(revoke)
 
 
 def default_api_workers() -> int:
@@ -163,92 +195,65 @@ def _configure_logs(settings, level: str | None = None) -> None:
     configure(settings.log_format, level or settings.log_level)
 
 
-def cmd_api(args: argparse.Namespace) -> int:
+@service.command()
+@click.option("--host", default="0.0.0.0", show_default=True)
+@click.option("--port", type=int, default=8000, show_default=True)
+@click.option("--workers", type=int, default=None, metavar="N",
+              help=f"API processes (default: one per core, at most 4; here {default_api_workers()})")
+def api(host: str, port: int, workers: int | None) -> int:
+    """The HTTP API alone. In production, with DROP_DATABASE_URL and DROP_BROKER_URL."""
     settings = _settings()
     _configure_logs(settings)
-    return _run_api(settings, args.host, args.port, args.workers or default_api_workers())
+    return _run_api(settings, host, port, workers or default_api_workers())
 
 
-def cmd_worker(args: argparse.Namespace) -> int:
+@service.command()
+@click.option("--concurrency", type=int, default=None, help="jobs at once (default DROP_WORKER_CONCURRENCY)")
+@click.option("--loglevel", default="INFO", show_default=True)
+def worker(concurrency: int | None, loglevel: str) -> int:
+    """A Celery worker that runs training jobs."""
     serve_worker()  # before anything else: `drop serve` may die at any time
     settings = _settings()
-    _configure_logs(settings, args.loglevel)
+    _configure_logs(settings, loglevel)
     settings.ensure_dirs()
     if not _check_migrated(settings):
         return 2
     from celery.bin.celery import celery
 
-    concurrency = args.concurrency or settings.worker_concurrency
-    celery.main(args=["-A", WORKER_APP, "worker", "--pool", "prefork", "-c", str(concurrency), "-Q", settings.queue,
-                      "--without-gossip", "--without-mingle", "--without-heartbeat",
-                      "-n", f"drop-{os.getpid()}@%h", "--loglevel", args.loglevel], standalone_mode=False)
+    celery.main(args=["-A", WORKER_APP, "worker", "--pool", "prefork", "-c",
+                      str(concurrency or settings.worker_concurrency), "-Q", settings.queue, "--without-gossip",
+                      "--without-mingle", "--without-heartbeat", "-n", f"drop-{os.getpid()}@%h",
+                      "--loglevel", loglevel], standalone_mode=False)
     return 0
 
 
-def cmd_serve(args: argparse.Namespace) -> int:
-    """Embedded single-machine mode: migrate, then serve the API in this process and one worker in a child, stopped
-    together by SIGTERM, SIGINT or SIGHUP (app/serving/embedded.py)."""
-    if not args.auth:
+@service.command()
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", type=int, default=8000, show_default=True)
+@click.option("--auth", is_flag=True, help="require bearer tokens even in embedded mode")
+def serve(host: str, port: int, auth: bool) -> int:
+    """The API and one worker on this machine. SQLite, a filesystem broker and no auth: it migrates, then serves the
+    API in this process and the worker in a child, stopped together by SIGTERM, SIGINT or SIGHUP
+    (app/serving/embedded.py)."""
+    if not auth:
         os.environ["DROP_AUTH_DISABLED"] = "true"
     os.environ.setdefault("DROP_LOG_FORMAT", "console")  # a person reads it; DROP_LOG_FORMAT=json for a collector
-    code = cmd_db_upgrade(args)
+    code = _upgrade_db()
     if code:
         return code
     settings = _settings()
     print(f"drop serve: data in {settings.data_dir.resolve()}, auth {'off' if settings.auth_disabled else 'on'}, "
-          f"API on http://{args.host}:{args.port}", flush=True)
+          f"API on http://{host}:{port}", flush=True)
     import uvicorn
 
-    from .serving.embedded import serve
+    from .serving.embedded import serve as run_embedded
 
     _configure_logs(settings)
-    return serve(uvicorn.Config(**_uvicorn_options(args.host, args.port, 1)))
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = engine_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-
-    p = sub.add_parser("serve", help="API and one worker on this machine (SQLite, filesystem broker, no auth)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--auth", action="store_true", help="require bearer tokens even in embedded mode")
-    p.set_defaults(func=cmd_serve)
-
-    p = sub.add_parser("api", help="the HTTP API alone (production: DROP_DATABASE_URL, DROP_BROKER_URL)")
-    p.add_argument("--host", default="0.0.0.0")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help=f"API processes (default: one per core, at most 8; here {default_api_workers()})")
-    p.set_defaults(func=cmd_api)
-
-    p = sub.add_parser("worker", help="a Celery worker that runs training jobs")
-    p.add_argument("--concurrency", type=int, default=None, help="jobs at once (default DROP_WORKER_CONCURRENCY)")
-    p.add_argument("--loglevel", default="INFO")
-    p.set_defaults(func=cmd_worker)
-
-    p = sub.add_parser("token", help="API tokens")
-    tsub = p.add_subparsers(dest="token_command", required=True)
-    t = tsub.add_parser("create", help="create a token for an owner (created if new) and print it once")
-    t.add_argument("--name", required=True)
-    t.set_defaults(func=cmd_token_create)
-    t = tsub.add_parser("list", help="list tokens (ids, owners, when created and revoked; never the secrets)")
-    t.add_argument("--owner", help="only this owner's tokens")
-    t.set_defaults(func=cmd_token_list)
-    t = tsub.add_parser("revoke", help="revoke a token at once, by id, the start of an id, or the token itself")
-    t.add_argument("token", metavar="ID_OR_TOKEN")
-    t.set_defaults(func=cmd_token_revoke)
-
-    p = sub.add_parser("db", help="database")
-    dsub = p.add_subparsers(dest="db_command", required=True)
-    d = dsub.add_parser("upgrade", help="apply migrations up to the newest")
-    d.set_defaults(func=cmd_db_upgrade)
-    return parser
+    return run_embedded(uvicorn.Config(**_uvicorn_options(host, port, 1)))
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return args.func(args)
+    return run(service, argv)
 
 
 if __name__ == "__main__":

@@ -1,26 +1,68 @@
-"""`drop` command line for the engine: train and evaluate. The service adds its own subcommands to this parser."""
+"""The engine's commands: train, plot, evaluate, collect. A click group that needs nothing above the engine; the `drop`
+command (drop_cli) adds the service's and the remote commands to these."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
+from typing import get_args
 
-from .config import PRESETS, build_config
+import click
+
+from .config import PRESETS, Algorithm, build_config
 from .errors import ConfigError
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
+ENV_VERSIONS = click.Choice(["v4", "v5"])
 
 
-def _parse_override(text: str) -> tuple[str, object]:
-    """KEY=VALUE with VALUE parsed as JSON when it is JSON (numbers, lists, booleans), else kept as a string."""
-    if "=" not in text:
-        raise argparse.ArgumentTypeError(f"override {text!r} is not KEY=VALUE")
-    key, raw = text.split("=", 1)
+class _Command(click.Command):
+    """A command whose function returns its exit code (None or 0: success)."""
+
+    def invoke(self, ctx: click.Context):
+        code = super().invoke(ctx)
+        if code:
+            ctx.exit(code)
+        return code
+
+
+class Group(click.Group):
+    """A group whose commands return their exit codes, and which, as argparse did, also takes -h for help; its
+    subgroups are of this class too."""
+
+    command_class = _Command
+    group_class = type
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("context_settings", {"help_option_names": ["-h", "--help"]})
+        super().__init__(*args, **kwargs)
+
+
+def run(group: click.Group, argv: list[str] | None = None) -> int:
+    """Run `group` as the `drop` command on `argv` (default: the process's arguments) and return its exit code, which
+    click would otherwise pass to sys.exit."""
     try:
-        return key, json.loads(raw)
-    except json.JSONDecodeError:
-        return key, raw
+        group.main(args=argv, prog_name="drop")
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+class Override(click.ParamType):
+    """KEY=VALUE with VALUE parsed as JSON when it is JSON (numbers, lists, booleans), else kept as a string."""
+
+    name = "KEY=VALUE"
+
+    def convert(self, value, param, ctx) -> tuple[str, object]:
+        if isinstance(value, tuple):
+            return value
+        if "=" not in value:
+            self.fail(f"{value!r} is not KEY=VALUE", param, ctx)
+        key, raw = value.split("=", 1)
+        try:
+            return key, json.loads(raw)
+        except json.JSONDecodeError:
+            return key, raw
 
 
 def write_curve(run_dir: Path) -> Path:
@@ -35,34 +77,60 @@ def write_curve(run_dir: Path) -> Path:
     return path
 
 
-def cmd_train(args: argparse.Namespace) -> int:
+@click.group(cls=Group)
+@click.version_option(package_name="drop-rl", prog_name="drop")
+def engine() -> None:
+    """DROP offline RL: train, evaluate and plot policies, and make datasets."""
+
+
+@engine.command()
+@click.option("--dataset", required=True, help="D4RL-layout .hdf5 or .npz, or a Minari dataset's zip")
+@click.option("--env", default="hopper", show_default=True, help="hopper | walker2d | halfcheetah")
+@click.option("--algorithm", default="drop", show_default=True, type=click.Choice(get_args(Algorithm)))
+@click.option("--preset", default="cpu", show_default=True, type=click.Choice(PRESETS))
+@click.option("--task", default=None, help="dataset kind (random, medium, ...) selecting the paper's settings")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda")
+@click.option("--threads", type=int, default=None, help="torch intra-op threads")
+@click.option("--set", "overrides", multiple=True, type=Override(),
+              help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
+@click.option("--out", required=True, help="run directory (checkpoints, policy/last and policy/best, metrics.jsonl, "
+              "evaluations.csv, curve.png, summary.json); an existing one is resumed")
+@click.option("--model-cache", default=DEFAULT_MODEL_CACHE, show_default=True, metavar="DIR",
+              help="trained dynamics ensembles shared between runs, by dataset, dynamics config and seed")
+@click.option("--no-model-cache", is_flag=True, help="always train the dynamics ensemble, store nothing")
+@click.option("--no-progress", is_flag=True,
+              help="no progress output (default: a bar on a terminal, plain lines when stderr is a file or pipe)")
+def train(dataset: str, env: str, algorithm: str, preset: str, task: str | None, seed: int, device: str,
+          threads: int | None, overrides: tuple[tuple[str, object], ...], out: str, model_cache: str,
+          no_model_cache: bool, no_progress: bool) -> int:
+    """Train a policy on a dataset file."""
     from .callbacks import CallbackList, progress_reporter
     from .errors import DatasetError
     from .run_log import RunLog
-    from .trainer import train
+    from .trainer import train as run_training
 
     try:
-        overrides = dict(args.set or [])
-        if args.threads:
-            overrides["threads"] = args.threads
-        config = build_config(args.algorithm, env=args.env, preset=args.preset, task=args.task, overrides=overrides,
-                              seed=args.seed, device=args.device)
+        fields = dict(overrides)
+        if threads:
+            fields["threads"] = threads
+        config = build_config(algorithm, env=env, preset=preset, task=task, overrides=fields, seed=seed,
+                              device=device)
     except ConfigError as exc:
         print(f"drop train: {exc}", file=sys.stderr)
         return 2
-    progress = progress_reporter(not args.no_progress, sys.stderr)
+    progress = progress_reporter(not no_progress, sys.stderr)
     try:
-        callback = CallbackList(progress, RunLog(args.out, config.steps_per_epoch))
-        result = train(args.dataset, config, args.out, callback, None if args.no_model_cache else args.model_cache)
+        callback = CallbackList(progress, RunLog(out, config.steps_per_epoch))
+        result = run_training(dataset, config, out, callback, None if no_model_cache else model_cache)
     except DatasetError as exc:
-        print(f"drop train: {args.dataset}: {exc}", file=sys.stderr)
+        print(f"drop train: {dataset}: {exc}", file=sys.stderr)
         return 2
     finally:
         getattr(progress, "close", lambda: None)()
     summary = result.to_dict()
-    Path(args.out, "summary.json").write_text(json.dumps({**summary, "config": config.model_dump(mode="json")},
-                                                         indent=2))
-    write_curve(Path(args.out))
+    Path(out, "summary.json").write_text(json.dumps({**summary, "config": config.model_dump(mode="json")}, indent=2))
+    write_curve(Path(out))
     keys = ("status", "epochs", "last_return", "last_score", "best_score", "best_epoch", "final_score", "policy",
             "timings")
     shown = {k: summary[k] for k in keys}
@@ -72,32 +140,76 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0 if result.status == "completed" else 1
 
 
-def cmd_plot(args: argparse.Namespace) -> int:
+@engine.command()
+@click.argument("runs", nargs=-1, required=True, metavar="RUN_DIR...")
+@click.option("--out", required=True, help="the PNG to write")
+@click.option("--title", default="", help="default: the envs")
+def plot(runs: tuple[str, ...], out: str, title: str) -> int:
+    """Overlay runs' learning curves. Seeds are drawn as mean and band, algorithms as colours; RUN_DIR: run
+    directories of drop train (or the paper table)."""
     from .plots import overlay
     from .run_log import NotARun, read_curve
 
     try:
-        curves = [read_curve(run) for run in args.runs]
+        curves = [read_curve(run) for run in runs]
     except NotARun as exc:
         print(f"drop plot: {exc}", file=sys.stderr)
         return 2
-    Path(args.out).write_bytes(overlay(curves, args.title))
-    print(args.out)
+    Path(out).write_bytes(overlay(curves, title))
+    print(out)
     return 0
 
 
-def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate
+@engine.command()
+@click.option("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")
+@click.option("--env", default=None, help="default: the env in metadata.json beside the policy, else hopper")
+@click.option("--env-version", default=None, type=ENV_VERSIONS,
+              help="default: the version of the gym id in metadata.json beside the policy, else v4")
+@click.option("--episodes", type=int, default=10, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+def evaluate(policy: str, env: str | None, env_version: str | None, episodes: int, seed: int) -> int:
+    """Evaluate an exported policy in the real env it was trained for."""
+    from .envs import DEFAULT_VERSION, gym_version
+    from .evaluation import evaluate as run_episodes
     from .export import load_policy
 
-    result = evaluate(load_policy(args.policy), args.env, args.episodes, args.seed, args.env_version)
-    print(json.dumps({"mean_return": result.mean_return, "std_return": result.std_return,
-                      "normalized_score": result.normalized_score, "returns": result.returns}, indent=2))
+    meta_path = Path(policy).with_name("metadata.json")
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    env = env or meta.get("env") or "hopper"
+    env_version = env_version or gym_version(meta.get("gym_id", "")) or DEFAULT_VERSION
+    result = run_episodes(load_policy(policy), env, episodes, seed, env_version)
+    print(json.dumps({"env": env, "env_version": env_version, "mean_return": result.mean_return,
+                      "std_return": result.std_return, "normalized_score": result.normalized_score,
+                      "returns": result.returns}, indent=2))
     return 0
 
 
-def cmd_collect(args: argparse.Namespace) -> int:
-    """Train SAC online and write the D4RL kinds; SIGINT/SIGTERM stop at a step boundary with a checkpoint."""
+@engine.command()
+@click.option("--env", default="hopper", show_default=True, help="hopper | walker2d | halfcheetah")
+@click.option("--out", required=True, help="output directory; an existing one is resumed")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--steps", type=int, default=None,
+              help="online SAC env steps, one update each (default: 120,000 for hopper, about 20 min on 2 idle "
+                   "cores; 200,000 for walker2d and halfcheetah, about 40 min on one core)")
+@click.option("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, medium, "
+              "expert; medium-expert holds twice this; default 200,000)")
+@click.option("--kinds", default=None,
+              help="comma-separated subset of random,medium,medium-replay,expert,medium-expert (default all)")
+@click.option("--warmup", type=int, default=5000, show_default=True,
+              help="uniform-random steps before SAC updates start")
+@click.option("--eval-every", type=int, default=5000, show_default=True,
+              help="env steps between evaluations and checkpoints")
+@click.option("--eval-episodes", type=int, default=10, show_default=True)
+@click.option("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
+@click.option("--env-version", default="v4", show_default=True, type=ENV_VERSIONS)
+@click.option("--num-envs", type=int, default=8, show_default=True, help="envs stepped side by side while recording")
+@click.option("--threads", type=int, default=None, help="torch intra-op threads")
+@click.option("--no-progress", is_flag=True, help="no progress bars")
+def collect(env: str, out: str, seed: int, steps: int | None, transitions: int | None, kinds: str | None,
+            warmup: int, eval_every: int, eval_episodes: int, medium_return: float | None, env_version: str,
+            num_envs: int, threads: int | None, no_progress: bool) -> int:
+    """Make D4RL-style datasets by training SAC online in the real env. SIGINT or SIGTERM stop it at a step boundary
+    with a checkpoint."""
     import signal
     import time
 
@@ -106,18 +218,16 @@ def cmd_collect(args: argparse.Namespace) -> int:
     from .collect import DEFAULT_TRANSITIONS, KINDS, CollectConfig, collect_datasets, summary_table
     from .online import OnlineConfig
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    kinds = tuple(args.kinds.split(",")) if args.kinds else KINDS
-    unknown = [k for k in kinds if k not in KINDS]
+    if threads:
+        torch.set_num_threads(threads)
+    chosen = tuple(kinds.split(",")) if kinds else KINDS
+    unknown = [k for k in chosen if k not in KINDS]
     if unknown:
         print(f"drop collect: unknown kinds {', '.join(unknown)}; known: {', '.join(KINDS)}", file=sys.stderr)
         return 2
     try:
-        online = OnlineConfig(env=args.env, version=args.env_version, seed=args.seed,
-                              steps=args.steps,
-                              warmup=args.warmup, eval_every=args.eval_every, eval_episodes=args.eval_episodes,
-                              medium_return=args.medium_return)
+        online = OnlineConfig(env=env, version=env_version, seed=seed, steps=steps, warmup=warmup,
+                              eval_every=eval_every, eval_episodes=eval_episodes, medium_return=medium_return)
     except (KeyError, ValueError) as exc:
         print(f"drop collect: {exc}", file=sys.stderr)
         return 2
@@ -129,8 +239,8 @@ def cmd_collect(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, ask_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     started = time.time()
     try:
-        config = CollectConfig(online, args.transitions or DEFAULT_TRANSITIONS, args.num_envs)
-        rows = collect_datasets(config, args.out, kinds, not args.no_progress, should_stop=lambda: stop["asked"])
+        config = CollectConfig(online, transitions or DEFAULT_TRANSITIONS, num_envs)
+        rows = collect_datasets(config, out, chosen, not no_progress, should_stop=lambda: stop["asked"])
     except ValueError as exc:
         print(f"drop collect: {exc}", file=sys.stderr)
         return 2
@@ -138,80 +248,17 @@ def cmd_collect(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if rows is None:
-        print(f"drop collect: stopped; run the same command again to resume from {args.out}", file=sys.stderr)
+        print(f"drop collect: stopped; run the same command again to resume from {out}", file=sys.stderr)
         return 130
     print(summary_table(rows))
     print(f"wall time: {time.time() - started:.0f} s this invocation; SAC training {rows[0]['train_seconds']:.0f} s "
           f"over all invocations, recording {rows[0]['record_seconds']:.0f} s")
-    Path(args.out, f"{online.env}-summary.json").write_text(json.dumps(rows, indent=2))
+    Path(out, f"{online.env}-summary.json").write_text(json.dumps(rows, indent=2))
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="drop", description="DROP offline RL: engine and service")
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("train", help="train a policy on a dataset file")
-    p.add_argument("--dataset", required=True, help="D4RL-layout .hdf5 or .npz, or a Minari dataset's zip")
-    p.add_argument("--env", default="hopper", help="hopper | walker2d | halfcheetah")
-    p.add_argument("--algorithm", default="drop", choices=["drop", "mopo", "mbpo"])
-    p.add_argument("--preset", default="cpu", choices=PRESETS)
-    p.add_argument("--task", default=None, help="dataset kind (random, medium, ...) selecting the paper's settings")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
-                   help="override any config field, e.g. --set dice.lr=1e-3 --set epochs=50")
-    p.add_argument("--out", required=True, help="run directory (checkpoints, policy/last and policy/best, metrics.jsonl, "
-                   "evaluations.csv, curve.png, summary.json); an existing one is resumed")
-    p.add_argument("--model-cache", default=DEFAULT_MODEL_CACHE, metavar="DIR",
-                   help="trained dynamics ensembles shared between runs, by dataset, dynamics config and seed "
-                        f"(default {DEFAULT_MODEL_CACHE})")
-    p.add_argument("--no-model-cache", action="store_true", help="always train the dynamics ensemble, store nothing")
-    p.add_argument("--no-progress", action="store_true",
-                   help="no progress output (default: a bar on a terminal, plain lines when stderr is a file or pipe)")
-    p.set_defaults(func=cmd_train)
-
-    p = sub.add_parser("plot", help="overlay runs' learning curves: seeds as mean and band, algorithms as colours")
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories of drop train (or the paper table)")
-    p.add_argument("--out", required=True, help="the PNG to write")
-    p.add_argument("--title", default="", help="default: the envs")
-    p.set_defaults(func=cmd_plot)
-
-    p = sub.add_parser("evaluate", help="evaluate an exported policy in the real env")
-    p.add_argument("--policy", required=True, help="policy.pt written by train (OUT/policy/last/ or OUT/policy/best/)")
-    p.add_argument("--env", default="hopper")
-    p.add_argument("--env-version", default="v4", choices=["v4", "v5"])
-    p.add_argument("--episodes", type=int, default=10)
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_evaluate)
-
-    p = sub.add_parser("collect", help="make D4RL-style datasets by training SAC online in the real env")
-    p.add_argument("--env", default="hopper", help="hopper | walker2d | halfcheetah")
-    p.add_argument("--out", required=True, help="output directory; an existing one is resumed")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=None,
-                   help="online SAC env steps, one update each (default: 120,000 for hopper, about 20 min on 2 idle "
-                        "cores; 200,000 for walker2d and halfcheetah, about 40 min on one core)")
-    p.add_argument("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, "
-                   "medium, expert; medium-expert holds twice this; default 200,000)")
-    p.add_argument("--kinds", default=None, help="comma-separated subset of random,medium,medium-replay,expert,"
-                                                 "medium-expert (default all)")
-    p.add_argument("--warmup", type=int, default=5000, help="uniform-random steps before SAC updates start")
-    p.add_argument("--eval-every", type=int, default=5000, help="env steps between evaluations and checkpoints")
-    p.add_argument("--eval-episodes", type=int, default=10)
-    p.add_argument("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
-    p.add_argument("--env-version", default="v4", choices=["v4", "v5"])
-    p.add_argument("--num-envs", type=int, default=8, help="envs stepped side by side while recording")
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.set_defaults(func=cmd_collect)
-    return parser
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return args.func(args)
+    return run(engine, argv)
 
 
 if __name__ == "__main__":

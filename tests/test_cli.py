@@ -7,7 +7,7 @@ from drop_engine.data import save_hdf5
 
 def test_train_then_evaluate(tmp_path, hopper_arrays, capsys, monkeypatch):
     data = tmp_path / "hopper.hdf5"
-    save_hdf5(data, hopper_arrays, {"env_name": "Hopper-v4"})
+    save_hdf5(data, hopper_arrays, {"env_name": "Hopper-v5"})  # a Minari-era dataset: trained and evaluated in v5
     monkeypatch.setenv("HOME", str(tmp_path / "home"))  # the default model cache lives there
 
     def train(out: str, *cache: str) -> dict:
@@ -32,10 +32,14 @@ def test_train_then_evaluate(tmp_path, hopper_arrays, capsys, monkeypatch):
         assert printed["policy"][which]["torchscript"] == str(tmp_path / "run" / "policy" / which / "policy.pt")
     assert (tmp_path / "run" / "metrics.jsonl").stat().st_size and (tmp_path / "run" / "evaluations.csv").exists()
 
-    assert main(["evaluate", "--policy", printed["policy"]["best"]["torchscript"], "--env", "hopper",
-                 "--episodes", "2"]) == 0
+    # The env and its version come from the policy's metadata unless given.
+    assert main(["evaluate", "--policy", printed["policy"]["best"]["torchscript"], "--episodes", "2"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert len(result["returns"]) == 2 and result["normalized_score"] < 100
+    assert (result["env"], result["env_version"]) == ("hopper", "v5")
+    assert main(["evaluate", "--policy", printed["policy"]["best"]["torchscript"], "--env-version", "v4",
+                 "--episodes", "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["env_version"] == "v4"
 
 
 def test_train_rejects_bad_input(tmp_path, capsys):

@@ -1,5 +1,6 @@
 """Imports point one way: `app -> kernel <- worker`, all three -> `drop_engine`, and the engine knows nothing of the
-service (docs/ARCHITECTURE.md). Read from the source's syntax trees, imports inside functions included, so a lazy
+service; `drop_client` stands alone, and `drop_cli` sits on top of the engine, `app` and the client
+(docs/ARCHITECTURE.md). Read from the source's syntax trees, imports inside functions included, so a lazy
 import cannot hide a dependency; and no module imports another that imports it back."""
 from __future__ import annotations
 
@@ -9,14 +10,17 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("drop_engine", "kernel", "app", "worker")
+PACKAGES = ("drop_engine", "kernel", "app", "worker", "drop_client", "drop_cli")
+ABOVE = {"drop_client", "drop_cli"}  # only drop_cli imports the client, and nothing imports drop_cli
 SERVICE_LIBRARIES = {"fastapi", "starlette", "uvicorn", "sqlalchemy", "alembic", "celery", "kombu", "psycopg", "redis",
                      "pydantic_settings", "prometheus_client", "structlog", "python_multipart"}
 FORBIDDEN = {
-    "drop_engine": {"kernel", "app", "worker"} | SERVICE_LIBRARIES,
-    "kernel": {"app", "worker"},
-    "worker": {"app"},
-    "app": {"worker"},
+    "drop_engine": {"kernel", "app", "worker"} | SERVICE_LIBRARIES | ABOVE,
+    "kernel": {"app", "worker"} | ABOVE,
+    "worker": {"app"} | ABOVE,
+    "app": {"worker"} | ABOVE,
+    "drop_client": {"drop_engine", "kernel", "app", "worker", "drop_cli"},
+    "drop_cli": {"kernel", "worker"},
 }
 
 

@@ -19,6 +19,7 @@ import pytest
 import redis
 
 from kernel.settings import Settings
+from drop_client import ApiError, DropClient
 
 PG_ADMIN = "postgresql://postgres@127.0.0.1:5432/postgres"
 REDIS_URL = "redis://127.0.0.1:6379/0"
@@ -152,6 +153,64 @@ def stop_worker(proc: subprocess.Popen) -> None:
         kill_group(proc)
 
 
+def past_first_epoch(job: dict) -> bool:
+    """A `wait` condition: the job is running and has trained an epoch, so it has a checkpoint to resume from."""
+    return job["status"] == "running" and (job["progress"] or {}).get("epoch", 0) >= 1
+
+
+class Api:
+    """`drop api` over `settings` on a port of its own, in a process of its own."""
+
+    def __init__(self, settings: Settings, log: Path):
+        self.port, self.env, self.log, self.proc = free_port(), settings_env(settings), log, None
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        with self.log.open("ab") as out:
+            self.proc = subprocess.Popen([sys.executable, "-m", "drop_cli", "api", "--host", "127.0.0.1",
+                                          "--port", str(self.port)], cwd=REPO, env=self.env, stdout=out,
+                                         stderr=subprocess.STDOUT)
+        with httpx.Client(base_url=self.url) as http:
+            wait_ready(http, self.proc, self.log)
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(20)
+
+
+class Serve:
+    """`drop serve` with a data directory under `tmp_path` and nothing else: SQLite, the filesystem broker, no auth."""
+
+    def __init__(self, tmp_path: Path):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("DROP_")}
+        self.env.update(DROP_DATA_DIR=str(tmp_path / "data"), DROP_WORKER_THREADS="1")
+        self.log_path = tmp_path / "serve.log"
+        self.proc = None
+
+    def start(self) -> DropClient:
+        with self.log_path.open("ab") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "drop_cli", "serve", "--port", str(self.port)],
+                                         cwd=REPO, env=self.env, stdout=log, stderr=subprocess.STDOUT)
+        drop = DropClient(self.url)
+        wait_ready(drop.http, self.proc, self.log_path)
+        return drop
+
+    def stop(self, sig: signal.Signals = signal.SIGINT, timeout: float = 60) -> int:
+        self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise
+
+
 @pytest.fixture(scope="session")
 def worker(settings, tmp_path_factory):
     """One real `drop worker` process consuming the test queue."""
@@ -193,10 +252,12 @@ def bob(client, tokens):
 
 
 class _Authed:
-    """A TestClient that sends one owner's bearer token."""
+    """A TestClient that sends one owner's bearer token, for requests whose raw answer a test checks; `api` is the
+    drop_client on the same connection and token."""
 
     def __init__(self, client, token: str):
         self.client, self.headers = client, {"Authorization": f"Bearer {token}"}
+        self.api = DropClient(token=token, http=client)
 
     def request(self, method: str, url: str, headers: dict | None = None, **kw):
         return self.client.request(method, url, headers={**self.headers, **(headers or {})}, **kw)
@@ -210,18 +271,9 @@ class _Authed:
     def delete(self, url, **kw):
         return self.request("DELETE", url, **kw)
 
-    def stream(self, method, url, headers=None, **kw):
-        return self.client.stream(method, url, headers={**self.headers, **(headers or {})}, **kw)
 
-    def upload(self, path: Path, **kw):
-        with open(path, "rb") as fh:
-            return self.post("/v1/datasets", files={"file": (path.name, fh, "application/x-hdf5")}, **kw)
-
-    def wait(self, job_id: str, statuses: set[str], timeout: float = 120.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            job = self.get(f"/v1/jobs/{job_id}").json()
-            if job["status"] in statuses:
-                return job
-            time.sleep(0.25)
-        raise AssertionError(f"job {job_id} still {job['status']} after {timeout} s: {job}")
+def upload_refused(api: DropClient, path: Path) -> httpx.Response:
+    """The answer to an upload that must fail."""
+    with pytest.raises(ApiError) as refused:
+        api.upload_dataset(path)
+    return refused.value.response

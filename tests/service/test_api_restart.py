@@ -3,44 +3,13 @@ separate processes on PostgreSQL and Redis): the worker never notices, nothing i
 resumes its event stream with Last-Event-ID, carries on against the new process."""
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import time
 
-import httpx
 import pytest
 
-from .conftest import REPO, free_port, settings_env, start_worker, stop_worker, wait_ready
+from drop_client import DropClient, NetworkError
 
-
-class Api:
-    def __init__(self, settings, log):
-        self.port, self.env, self.log, self.proc = free_port(), settings_env(settings), log, None
-
-    def start(self) -> None:
-        with self.log.open("ab") as out:
-            self.proc = subprocess.Popen([sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1",
-                                          "--port", str(self.port)], cwd=REPO, env=self.env, stdout=out,
-                                         stderr=subprocess.STDOUT)
-        with httpx.Client(base_url=f"http://127.0.0.1:{self.port}") as http:
-            wait_ready(http, self.proc, self.log)
-
-    def kill(self) -> None:
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait()
-
-
-def _events_after(http: httpx.Client, job_id: str, last_id: int) -> list[int]:
-    """The ids the SSE stream sends from Last-Event-ID until the server ends it (the job finished)."""
-    events = []
-    with http.stream("GET", f"/v1/jobs/{job_id}/events",
-                     headers={"Accept": "text/event-stream", "Last-Event-ID": str(last_id)}) as r:
-        assert r.status_code == 200
-        for line in r.iter_lines():
-            if line.startswith("id: "):
-                events.append(int(line[4:]))
-    return events
+from .conftest import Api, past_first_epoch, start_worker, stop_worker
 
 
 def test_jobs_and_clients_survive_an_api_restart(own_settings, hopper_file, tmp_path):
@@ -51,47 +20,34 @@ def test_jobs_and_clients_survive_an_api_restart(own_settings, hopper_file, tmp_
     worker = start_worker(own_settings, tmp_path / "worker.log")
     api = Api(own_settings, tmp_path / "api.log")
     api.start()
-    http = httpx.Client(base_url=f"http://127.0.0.1:{api.port}", headers={"Authorization": f"Bearer {token}"},
-                        timeout=30)
+    drop = DropClient(api.url, token, timeout=30)
     try:
-        with hopper_file.open("rb") as fh:
-            ds = http.post("/v1/datasets", files={"file": (hopper_file.name, fh, "application/x-hdf5")}).json()
-        spec = {"dataset_id": ds["id"], "preset": "smoke", "overrides": {"epochs": 8, "steps_per_epoch": 40}}
-        running = http.post("/v1/jobs", json=spec).json()
-        queued = http.post("/v1/jobs", json={**spec, "seed": 1}).json()
-        deadline = time.monotonic() + 90
-        while (job := http.get(f"/v1/jobs/{running['id']}").json())["status"] != "running" \
-                or (job["progress"] or {}).get("epoch", 0) < 1:
-            assert job["status"] in ("queued", "running"), job
-            assert time.monotonic() < deadline, job
-            time.sleep(0.1)
-        seen = http.get(f"/v1/jobs/{running['id']}/events", params={"limit": 1000}).json()["data"]
+        ds = drop.upload_dataset(hopper_file)
+        spec = {"preset": "smoke", "overrides": {"epochs": 8, "steps_per_epoch": 40}}
+        running = drop.create_job(ds["id"], **spec)
+        queued = drop.create_job(ds["id"], seed=1, **spec)
+        job = drop.wait(running["id"], until=past_first_epoch, timeout=90, poll_s=0.1)
+        assert job["status"] == "running", job
+        seen = list(drop.list_events(running["id"]))
 
         api.kill()
-        with pytest.raises(httpx.TransportError):
-            http.get("/healthz")
+        with pytest.raises(NetworkError):
+            drop.get_job(running["id"])
         time.sleep(2)  # the worker goes on training and recording meanwhile
         api.start()
 
         for job_id in (running["id"], queued["id"]):
-            deadline = time.monotonic() + 120
-            while (job := http.get(f"/v1/jobs/{job_id}").json())["status"] not in ("succeeded", "failed",
-                                                                                    "cancelled"):
-                assert time.monotonic() < deadline, job
-                time.sleep(0.25)
+            job = drop.wait(job_id, timeout=120, poll_s=0.25)
             assert job["status"] == "succeeded" and job["attempts"] == 1, job
 
         # The stream resumed from the last event seen before the restart delivers exactly the rest, in order.
-        everything = http.get(f"/v1/jobs/{running['id']}/events", params={"limit": 1000}).json()["data"]
+        everything = list(drop.list_events(running["id"]))
         assert [e["id"] for e in everything[:len(seen)]] == [e["id"] for e in seen]
-        assert _events_after(http, running["id"], seen[-1]["id"]) == [e["id"] for e in everything[len(seen):]]
+        assert list(drop.stream_events(running["id"], last_event_id=seen[-1]["id"])) == everything[len(seen):]
         assert everything[-1]["message"] == "succeeded"
-        assert [e["epoch"] for e in http.get(f"/v1/jobs/{running['id']}/evaluations").json()["data"]] == \
-            list(range(1, 9))
-        assert http.get(f"/v1/jobs/{running['id']}/policy").status_code == 200
+        assert [e["epoch"] for e in drop.list_evaluations(running["id"])] == list(range(1, 9))
+        assert drop.download_policy(running["id"], tmp_path).stat().st_size
     finally:
-        http.close()
-        if api.proc.poll() is None:
-            api.proc.terminate()
-            api.proc.wait(20)
+        drop.close()
+        api.stop()
         stop_worker(worker)

@@ -29,7 +29,7 @@ def test_job_fails_after_max_attempts_crashes(own_settings, hopper_file, tmp_pat
     last = None
     with TestClient(create_app(settings), raise_server_exceptions=False) as client:
         alice = _Authed(client, create_token(client.app.state.sessions, "alice"))
-        ds = alice.upload(hopper_file).json()
+        ds = alice.api.upload_dataset(hopper_file)
         job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke",
                                            "overrides": {"epochs": 500}}).json()
         assert job["max_attempts"] == 2
@@ -41,7 +41,7 @@ def test_job_fails_after_max_attempts_crashes(own_settings, hopper_file, tmp_pat
                 finally:
                     kill_group(crashing)
             last = start_worker(settings, log)
-            done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=60)
+            done = alice.api.wait(job["id"], timeout=60)
             assert done["status"] == "failed" and done["attempts"] == 2, done
             assert done["error"]["code"] == "worker_lost"
             assert "attempts exhausted" in done["error"]["message"] and "max_attempts=2" in done["error"]["message"]

@@ -19,10 +19,10 @@ def test_tokens_are_stored_hashed(app, tokens):
 
 
 def test_owner_cannot_see_another_owners_objects(alice, bob, hopper_file):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
     alice.post(f"/v1/jobs/{job['id']}/cancel")
-    alice.wait(job["id"], {"cancelled", "succeeded", "failed"})
+    alice.api.wait(job["id"], timeout=120)
 
     for path in (f"/v1/datasets/{ds['id']}", f"/v1/jobs/{job['id']}", f"/v1/jobs/{job['id']}/events",
                  f"/v1/jobs/{job['id']}/metrics", f"/v1/jobs/{job['id']}/policy", f"/v1/jobs/{job['id']}/curve.png"):

@@ -61,7 +61,7 @@ def test_jobs_survive_a_redis_restart(own_settings, own_redis, hopper_file, tmp_
     try:
         with TestClient(create_app(settings), raise_server_exceptions=False) as client:
             alice = _Authed(client, create_token(client.app.state.sessions, "alice"))
-            ds = alice.upload(hopper_file).json()
+            ds = alice.api.upload_dataset(hopper_file)
             spec = {"dataset_id": ds["id"], "preset": "smoke"}
             running = alice.post("/v1/jobs", json={**spec, "overrides": {"epochs": 10}}).json()
             queued = alice.post("/v1/jobs", json={**spec, "seed": 1}).json()
@@ -80,7 +80,7 @@ def test_jobs_survive_a_redis_restart(own_settings, own_redis, hopper_file, tmp_
             assert redis.Redis.from_url(own_redis.url).llen(settings.queue) == 0, "the queued message is gone"
 
             for job_id in (running["id"], queued["id"]):
-                done = alice.wait(job_id, {"succeeded", "failed", "cancelled"}, timeout=120)
+                done = alice.api.wait(job_id, timeout=120)
                 assert done["status"] == "succeeded" and done["attempts"] == 1, done
         assert f"re-sent jobs {queued['id']}" in log.read_text()
     finally:

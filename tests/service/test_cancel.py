@@ -12,7 +12,7 @@ from drop_engine.data import save_hdf5
 
 
 def test_cancel_running_and_queued(alice, worker, hopper_file):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     long = {"dataset_id": ds["id"], "preset": "smoke", "overrides": {"epochs": 500}}
     running = alice.post("/v1/jobs", json=long).json()
     queued = alice.post("/v1/jobs", json={**long, "seed": 7}).json()
@@ -39,7 +39,7 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     assert r.status_code == 202 and r.json()["status"] in ("cancelling", "cancelled")
     again = alice.post(f"/v1/jobs/{running['id']}/cancel")
     assert (again.status_code, again.json()["status"]) in ((202, "cancelling"), (200, "cancelled")), again.json()
-    done = alice.wait(running["id"], {"cancelled", "succeeded", "failed"}, timeout=20)  # its next step is ms away
+    done = alice.api.wait(running["id"], timeout=20)  # its next step is ms away
     assert done["status"] == "cancelled", done
     assert done["progress"]["epoch"] < 500
     assert alice.post(f"/v1/jobs/{running['id']}/cancel").status_code == 200
@@ -70,17 +70,17 @@ def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
     path = tmp_path / "hopper-x7.hdf5"
     core = {k: v for k, v in arrays.items() if not k.startswith("infos/")}  # under the upload limit
     save_hdf5(path, {k: np.concatenate([v] * 7) for k, v in core.items()}, attrs)  # 14,000 rows
-    ds = alice.upload(path).json()
+    ds = alice.api.upload_dataset(path)
     dynamics = {"members": 7, "elites": 5, "hidden": 800, "layers": 4, "batch_size": 256, "max_epochs": 1000,
                 "patience": 1000}
     job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "overrides": {"dynamics": dynamics}})
     assert job.status_code == 201, job.json()
-    job = alice.wait(job.json()["id"], {"running"}, timeout=60)
+    job = alice.api.wait(job.json()["id"], until=lambda j: j["status"] == "running", timeout=60)
     time.sleep(3)  # into the first epoch: its engine is imported and its data loaded by now
 
     asked = time.monotonic()
     assert alice.post(f"/v1/jobs/{job['id']}/cancel").status_code == 202
-    done = alice.wait(job["id"], {"cancelled", "succeeded", "failed"}, timeout=60)
+    done = alice.api.wait(job["id"], timeout=60)
     took = time.monotonic() - asked
     assert done["status"] == "cancelled" and took < 5, (took, done)
     assert (done["progress"] or {}).get("step", 0) == 0, "stopped inside the first epoch"
@@ -92,10 +92,10 @@ def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
 
 
 def test_attempt_past_max_runtime_fails_with_timeout(alice, worker, hopper_file):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "max_runtime_s": 8,
                                        "overrides": {"epochs": 500}}).json()
-    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
+    done = alice.api.wait(job["id"], timeout=90)
     assert done["status"] == "failed" and done["error"]["code"] == "timeout", done
     assert "max_runtime_s=8" in done["error"]["message"]
     _assert_cannot_cancel(alice, done)
@@ -103,9 +103,9 @@ def test_attempt_past_max_runtime_fails_with_timeout(alice, worker, hopper_file)
 
 
 def test_cancel_succeeded_job_is_409(alice, worker, hopper_file):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
-    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
+    done = alice.api.wait(job["id"], timeout=90)
     assert done["status"] == "succeeded", done
     _assert_cannot_cancel(alice, done)
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204

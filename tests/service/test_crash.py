@@ -29,7 +29,7 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
     try:
         with TestClient(create_app(crash_settings), raise_server_exceptions=False) as client:
             alice = _Authed(client, tokens["alice"])
-            ds = alice.upload(hopper_file).json()
+            ds = alice.api.upload_dataset(hopper_file)
             job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke",
                                                "overrides": {"epochs": 6, "steps_per_epoch": 40}}).json()
             deadline = time.monotonic() + 90
@@ -44,7 +44,7 @@ def test_killed_worker_job_resumes_on_another(crash_settings, tokens, hopper_fil
             killed_at_epoch = cur["progress"]["epoch"]
 
             second = start_worker(crash_settings, log)
-            done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=150)
+            done = alice.api.wait(job["id"], timeout=150)
             assert done["status"] == "succeeded", (done, alice.get(f"/v1/jobs/{job['id']}/events").json())
             assert done["attempts"] == 2
 

@@ -2,20 +2,22 @@
 PostgreSQL, and are bounded per owner."""
 from __future__ import annotations
 
-import asyncio
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from typing import Iterator
 
 import httpx
+import pytest
 import uvicorn
+
+from drop_client import DropClient, RateLimited
 
 from .conftest import free_port
 from .private_api import tiny_npz
 
 STREAMS = 100
-SSE = {"Accept": "text/event-stream"}
 
 
 @contextmanager
@@ -36,64 +38,56 @@ def serving(app) -> Iterator[str]:
         thread.join(10)
 
 
-async def open_stream(client: httpx.AsyncClient, url: str, first: asyncio.Event, frames: list[str]) -> None:
-    async with client.stream("GET", url, headers=SSE) as response:
-        assert response.status_code == 200, await response.aread()
-        async for line in response.aiter_lines():
-            frames.append(line)
-            first.set()
-            if line.startswith("event: end"):
-                return
-
-
-def test_hundred_open_streams_leave_the_api_responsive(own_settings):
+def test_hundred_open_streams_leave_the_api_responsive(own_settings, tmp_path):
     from app.core.auth import create_token
     from app.main import create_app
 
     # No worker reads this queue: the job stays queued, and its streams stay open, until it is cancelled.
     app = create_app(own_settings.model_copy(update={"max_streams_per_owner": STREAMS}))
     token = create_token(app.state.sessions, "streams")
+    data = tmp_path / "tiny.npz"
+    data.write_bytes(tiny_npz(1))
+    opened = [threading.Event() for _ in range(STREAMS)]
 
-    async def scenario(base: str) -> None:
-        limits = httpx.Limits(max_connections=STREAMS + 10)
-        async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {token}"}, limits=limits,
-                                     timeout=httpx.Timeout(30, read=None)) as client:
-            ds = (await client.post("/v1/datasets", content=tiny_npz(1))).raise_for_status().json()
-            job = (await client.post("/v1/jobs", json={"dataset_id": ds["id"], "env": "hopper", "preset": "smoke"}))
-            job_id = job.raise_for_status().json()["id"]
-            url = f"/v1/jobs/{job_id}/events"
-            firsts = [asyncio.Event() for _ in range(STREAMS)]
-            frames: list[list[str]] = [[] for _ in range(STREAMS)]
-            tasks = [asyncio.create_task(open_stream(client, url, f, fr)) for f, fr in zip(firsts, frames)]
-            await asyncio.wait_for(asyncio.gather(*(f.wait() for f in firsts)), 60)  # every stream is open
+    def follow(drop: DropClient, job_id: str, first: threading.Event) -> list[dict]:
+        events = []
+        for event in drop.stream_events(job_id):
+            events.append(event)
+            first.set()
+        return events
+
+    try:
+        # On the way out the server stops first, which ends any stream still open, and then the threads are joined.
+        with ThreadPoolExecutor(STREAMS) as pool, serving(app) as base, \
+                httpx.Client(base_url=base, limits=httpx.Limits(max_connections=STREAMS + 10), timeout=30) as http:
+            drop = DropClient(token=token, http=http)
+            job_id = drop.create_job(drop.upload_dataset(data)["id"], env="hopper", preset="smoke")["id"]
+            streams = [pool.submit(follow, drop, job_id, first) for first in opened]
+            assert all(first.wait(60) for first in opened)  # every stream is open
 
             # Held connections made every read wait 30 s for the pool, then 500. The median read is under a second;
             # a slow one on a loaded 2-core machine is not the failure this guards.
             seconds = []
             for _ in range(5):
                 began = time.perf_counter()
-                assert (await client.get(f"/v1/jobs/{job_id}")).status_code == 200
+                drop.get_job(job_id)
                 seconds.append(time.perf_counter() - began)
             assert sorted(seconds)[2] < 1.0 and max(seconds) < 10, seconds
-            extra = await client.get(url, headers=SSE)
-            assert extra.status_code == 429 and extra.json()["code"] == "too_many_streams"
+            with pytest.raises(RateLimited) as refused:
+                next(drop.stream_events(job_id))
+            assert refused.value.code == "too_many_streams"
 
             # The cancel's event wakes all streams at once: far sooner than their 15 s safety poll.
             assert app.state.events.live
-            began = time.perf_counter()
-            (await client.post(f"/v1/jobs/{job_id}/cancel")).raise_for_status()
-            await asyncio.wait_for(asyncio.gather(*tasks), 10)
-            assert time.perf_counter() - began < 10
-            assert all(any(line.startswith("event: end") for line in fr) for fr in frames)
-            assert all(sum(line.startswith("id: ") for line in fr) == 2 for fr in frames)  # queued, cancelled
+            drop.cancel_job(job_id)
+            _, late = wait(streams, timeout=10)
+            assert not late
+            for stream in streams:  # each ended with the job (the client raises otherwise) after its two events
+                assert [e["data"]["status"] for e in stream.result()] == ["queued", "cancelled"]
             for _ in range(50):  # each stream gives its slot back as it ends
                 if not app.state.stream_slots.held():
                     break
-                await asyncio.sleep(0.1)
+                time.sleep(0.1)
             assert app.state.stream_slots.held() == 0
-
-    try:
-        with serving(app) as base:
-            asyncio.run(scenario(base))
     finally:
         app.state.engine.dispose()

@@ -14,7 +14,7 @@ RUNAWAY_ALPHA = {"sac": {"alpha_lr": 1.0, "target_entropy": 1000.0}, "epochs": 3
 
 
 def test_failed_job_keeps_traceback_out_of_the_api(app, settings, alice, hopper_file, tmp_path):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     sessions = app.state.sessions
     with sessions() as s:
         owner_id = s.get(Dataset, ds["id"]).owner_id
@@ -38,9 +38,9 @@ def test_failed_job_keeps_traceback_out_of_the_api(app, settings, alice, hopper_
 
 
 def test_diverging_job_fails_with_training_diverged(alice, worker, hopper_file):
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke", "overrides": RUNAWAY_ALPHA}).json()
-    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=90)
+    done = alice.api.wait(job["id"], timeout=90)
     assert done["status"] == "failed" and done["error"]["code"] == "training_diverged", done
     assert done["error"]["message"].startswith("training diverged: sac/") and "at step 50" in done["error"]["message"]
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
@@ -50,7 +50,7 @@ def test_database_error_message_shows_no_sql(app, settings, alice, hopper_file, 
     """With divergence detection off, the diverged metrics reach PostgreSQL, which refuses Infinity in JSON: the job
     fails with the error's type alone, and the statement is only in its traceback event."""
     monkeypatch.setattr("drop_engine.trainer.check_finite", lambda metrics, step: None)
-    ds = alice.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     sessions = app.state.sessions
     with sessions.begin() as s:
         dataset = s.get(Dataset, ds["id"])

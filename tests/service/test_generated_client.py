@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from .conftest import REPO, free_port, settings_env, wait_ready
+from .conftest import Api
 from .private_api import tiny_npz
 
 PACKAGE = "drop_api_client"
@@ -24,20 +24,13 @@ GENERATOR_CONFIG = {"post_hooks": [], "content_type_overrides": {"image/png": "a
 
 @pytest.fixture
 def api_url(settings, worker, tmp_path):
-    """`drop api` on a free port, over the session's database and the queue the session's worker reads."""
-    log = tmp_path / "api.log"
-    port = free_port()
-    with log.open("ab") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1", "--port", str(port)],
-                                cwd=REPO, env=settings_env(settings), stdout=out, stderr=subprocess.STDOUT)
+    """`drop api` over the session's database and the queue the session's worker reads."""
+    api = Api(settings, tmp_path / "api.log")
+    api.start()
     try:
-        url = f"http://127.0.0.1:{port}"
-        with httpx.Client(base_url=url) as http:
-            wait_ready(http, proc, log)
-        yield url
+        yield api.url
     finally:
-        proc.terminate()
-        proc.wait(30)
+        api.stop()
 
 
 @pytest.fixture

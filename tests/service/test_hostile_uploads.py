@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
+from .conftest import upload_refused
 from .test_uploads import _arrays, _assert_problem, _minari_zip, clean  # noqa: F401 (clean is a fixture)
 
 SECRET_REWARD = 123456.0  # what a report would show if the upload had read the other file
@@ -34,7 +35,7 @@ def _upload_with(alice, path: Path, replace: str, make) -> dict:
             if key != replace:
                 f.create_dataset(key, data=value)
         make(f)
-    r = alice.upload(path)
+    r = upload_refused(alice.api, path)
     assert r.status_code == 422, r.text
     return r.json()
 
@@ -105,9 +106,8 @@ def test_hdf5_builtin_filters_are_accepted(alice, tmp_path):
             options = {"compression": "lzf"} if key == "actions" else {"compression": "gzip", "shuffle": True,
                                                                          "fletcher32": True}
             f.create_dataset(key, data=value, **options)
-    r = alice.upload(path)
-    assert r.status_code == 201, r.text
-    assert alice.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
+    ds = alice.api.upload_dataset(path)
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
 
 
 def test_hdf5_absurd_declared_shape(alice, clean, tmp_path):

@@ -3,7 +3,6 @@ a second job on the same data and seed reuses the first one's dynamics ensemble 
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import torch
@@ -19,9 +18,7 @@ def _dynamics(app, job_id: str) -> dict:
 
 
 def test_upload_train_download(alice, worker, hopper_file, app, settings):
-    r = alice.upload(hopper_file)
-    assert r.status_code == 201, r.text
-    ds = r.json()
+    ds = alice.api.upload_dataset(hopper_file)
     assert ds["object"] == "dataset" and ds["env"] == "hopper" and ds["name"] == hopper_file.name
     assert ds["report"]["transitions"] == 2000 and (ds["obs_dim"], ds["act_dim"]) == (11, 3)
     assert ds["report"]["terminals"] + ds["report"]["timeouts"] >= 1
@@ -34,7 +31,7 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     job = r.json()
     assert job["status"] == "queued" and job["env"] == "hopper" and job["config"]["dice"]["lr"] == 1e-3
 
-    done = alice.wait(job["id"], {"succeeded", "failed", "cancelled"})
+    done = alice.api.wait(job["id"], timeout=120)
     assert done["status"] == "succeeded", done
     assert done["attempts"] == 1 and done["progress"]["fraction"] == 1.0
     assert done["best_score"] is not None and done["last_score"] is not None
@@ -52,18 +49,10 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     page = alice.get(f"/v1/jobs/{job['id']}/events", params={"after": events[0]["id"], "limit": 2}).json()
     assert [e["id"] for e in page["data"]] == [e["id"] for e in events[1:3]] and page["has_more"]
 
-    with alice.stream("GET", f"/v1/jobs/{job['id']}/events", headers={"Accept": "text/event-stream"}) as stream:
-        assert stream.headers["content-type"].startswith("text/event-stream")
-        body = "".join(stream.iter_text())
-    frames = [f for f in body.split("\n\n") if f.strip()]
-    assert frames[-1].startswith("event: end") and len(frames) == len(events) + 1
-    assert json.loads(frames[0].split("data: ", 1)[1])["id"] == events[0]["id"]
-
-    last = events[-2]["id"]  # a reconnecting client resumes after the last event it saw
-    with alice.stream("GET", f"/v1/jobs/{job['id']}/events",
-                      headers={"Accept": "text/event-stream", "Last-Event-ID": str(last)}) as stream:
-        resumed = [f for f in "".join(stream.iter_text()).split("\n\n") if f.strip()]
-    assert len(resumed) == 2 and resumed[0].startswith(f"id: {events[-1]['id']}\n")
+    # The stream sends the same events, each under its id, and ends with the job (or the client raises).
+    assert list(alice.api.stream_events(job["id"])) == events
+    # A reconnecting client resumes after the last event it saw.
+    assert list(alice.api.stream_events(job["id"], last_event_id=events[-2]["id"])) == events[-1:]
 
     metrics = alice.get(f"/v1/jobs/{job['id']}/metrics", params={"name": "sac/critic_loss"}).json()["data"]
     assert metrics and all(m["name"] == "sac/critic_loss" for m in metrics)
@@ -124,7 +113,7 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     # Same data, seed and dynamics config, another algorithm: the ensemble comes from the cache, not trained again.
     again = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "algorithm": "mopo", "preset": "smoke", "seed": 1,
                                          "overrides": {"epochs": 1}}).json()
-    again_done = alice.wait(again["id"], {"succeeded", "failed", "cancelled"})
+    again_done = alice.api.wait(again["id"], timeout=120)
     assert again_done["status"] == "succeeded", again_done
     assert again_done["latest_metrics"]["dynamics/from_cache"] == 1.0
     assert _dynamics(app, again["id"]) == {**dynamics, "from_cache": True}

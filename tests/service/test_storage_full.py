@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import select
 
-from .conftest import _Authed, start_worker, stop_worker
+from .conftest import _Authed, start_worker, stop_worker, upload_refused
 
 
 @pytest.fixture
@@ -37,7 +37,7 @@ def disk(own_settings, tmp_path):
 
 
 @pytest.fixture
-def api(disk):
+def alice(disk):
     from fastapi.testclient import TestClient
 
     from app.core.auth import create_token
@@ -56,11 +56,11 @@ def _files(folder: Path) -> list[Path]:
     ("datasets", (), "storage_full"),  # while the validator copies it into place (another device: no hard link)
     ("uploads", ("ro",), "storage_unwritable"),
 ])
-def test_upload_to_full_storage_is_507_and_keeps_nothing(disk, api, tmpfs, hopper_file, folder, options, code):
+def test_upload_to_full_storage_is_507_and_keeps_nothing(disk, alice, tmpfs, hopper_file, folder, options, code):
     from kernel.models import Dataset
 
     tmpfs(disk.data_dir / folder, *options)
-    r = api.upload(hopper_file)
+    r = upload_refused(alice.api, hopper_file)
     assert r.status_code == 507, r.text
     assert r.headers["content-type"] == "application/problem+json"
     body = r.json()
@@ -68,23 +68,23 @@ def test_upload_to_full_storage_is_507_and_keeps_nothing(disk, api, tmpfs, hoppe
     assert "storage is " + ("full" if code == "storage_full" else "not writable") in body["detail"]
     assert str(disk.data_dir) not in body["detail"]
     assert _files(disk.data_dir / "uploads") == [] and _files(disk.data_dir / "datasets") == []
-    with api.client.app.state.sessions() as s:
+    with alice.client.app.state.sessions() as s:
         assert s.scalars(select(Dataset)).all() == []
-    assert api.get("/v1/datasets").json()["data"] == []
+    assert alice.get("/v1/datasets").json()["data"] == []
 
 
-def test_job_whose_checkpoint_cannot_be_written_fails_with_storage_full(disk, api, tmpfs, hopper_file, tmp_path):
+def test_job_whose_checkpoint_cannot_be_written_fails_with_storage_full(disk, alice, tmpfs, hopper_file, tmp_path):
     tmpfs(disk.data_dir / "jobs")  # a checkpoint of the smoke preset is about 200 KiB
-    ds = api.upload(hopper_file).json()
+    ds = alice.api.upload_dataset(hopper_file)
     worker = start_worker(disk, tmp_path / "worker.log")
     try:
-        job = api.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
-        done = api.wait(job["id"], {"succeeded", "failed", "cancelled"}, timeout=60)
+        job = alice.post("/v1/jobs", json={"dataset_id": ds["id"], "preset": "smoke"}).json()
+        done = alice.api.wait(job["id"], timeout=60)
     finally:
         stop_worker(worker)
     assert done["status"] == "failed" and done["attempts"] == 1, done
     assert done["error"]["code"] == "storage_full"
     assert done["error"]["message"].startswith("the run's checkpoint or policy could not be written: the server's "
                                                "storage is full")
-    assert api.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"] == []
+    assert alice.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"] == []
     assert _files(disk.data_dir / "jobs") == [], "no partial checkpoint is left behind"

@@ -11,6 +11,8 @@ import h5py
 import numpy as np
 import pytest
 
+from .conftest import upload_refused
+
 PROBLEM = "application/problem+json"
 
 
@@ -56,19 +58,19 @@ def _assert_problem(r, status: int, *needles: str) -> dict:
 def test_truncated_hdf5(alice, clean, hopper_file, tmp_path):
     bad = tmp_path / "truncated.hdf5"
     bad.write_bytes(hopper_file.read_bytes()[: hopper_file.stat().st_size // 2])
-    _assert_problem(alice.upload(bad), 422)
+    _assert_problem(upload_refused(alice.api, bad), 422)
 
 
 def test_wrong_keys(alice, clean, tmp_path):
     arrays = _arrays()
     arrays["acts"] = arrays.pop("actions")
-    _assert_problem(alice.upload(_write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
+    _assert_problem(upload_refused(alice.api, _write(tmp_path / "keys.hdf5", arrays)), 422, "actions", "missing")
 
 
 def test_nans(alice, clean, tmp_path):
     arrays = _arrays()
     arrays["rewards"][[3, 7]] = np.nan
-    _assert_problem(alice.upload(_write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
+    _assert_problem(upload_refused(alice.api, _write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
 
 
 def test_not_a_dataset(alice, clean):

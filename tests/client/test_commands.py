@@ -1,0 +1,15 @@
+"""The one `drop` command: every command under it, a version, and click's usage errors as exit status 2."""
+from __future__ import annotations
+
+
+def test_drop_gathers_every_command_and_has_a_version(capsys):
+    from drop_cli import drop, main
+
+    assert set(drop.commands) == {"train", "plot", "evaluate", "collect", "serve", "api", "worker", "token", "db",
+                                  "datasets", "jobs"}
+    assert set(drop.commands["jobs"].commands) == {"submit", "list", "status", "logs", "cancel", "download"}
+    assert set(drop.commands["datasets"].commands) == {"upload", "list", "rm"}
+    assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("drop, version 0.")
+    assert main(["train", "--dataset", "x.hdf5", "--out", "run", "--set", "epochs"]) == 2
+    assert "'epochs' is not KEY=VALUE" in capsys.readouterr().err
+
