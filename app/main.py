@@ -16,9 +16,11 @@ from kernel.settings import Settings, get_settings
 from .core import problems
 from .core.body_limit import BodyLimit
 from .core.body_timeout import IdleBody
+from .core.openapi import operation_id
 from .core.slots import stream_slots, upload_slots
 from .core.token_cache import TokenCache
 from .datasets import routes as datasets
+from .datasets.validate import Validator
 from .jobs import outputs
 from .jobs import routes as jobs
 from .jobs.event_bus import EventWaker, listen
@@ -26,7 +28,6 @@ from .jobs.metrics import JobMetrics
 from .observability import health
 from .observability.observe import ObserveRequests
 from .serving.procs import supervised
-from .datasets.validate import Validator
 
 log = logging.getLogger("drop.api")
 JSON_BODY_LIMIT = 1 << 20
@@ -46,7 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         raise NotMigrated(reason)
     # JSON bodies are small; only the dataset upload may be large, and it enforces its own limit while streaming.
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
-                  lifespan=_lifespan)
+                  lifespan=_lifespan, generate_unique_id_function=operation_id)
     app.add_middleware(BodyLimit, limit=JSON_BODY_LIMIT, exempt={("POST", "/v1/datasets")})
     app.add_middleware(IdleBody, timeout=settings.body_idle_timeout_s)  # outside BodyLimit, which reads JSON bodies
     app.state.settings = settings

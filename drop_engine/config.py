@@ -7,7 +7,7 @@ the result, so a bad override is rejected before any work starts.
 """
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Mapping
+from typing import Annotated, Any, Literal, Mapping, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -16,7 +16,8 @@ from .errors import ConfigError
 
 Algorithm = Literal["drop", "mopo", "mbpo"]
 PenaltyFn = Literal["log", "tanh", "tanh_shift"]
-PRESETS = ("paper", "cpu", "smoke")
+Preset = Literal["paper", "cpu", "smoke"]
+PRESETS: tuple[Preset, ...] = get_args(Preset)
 
 
 class _Strict(BaseModel):
@@ -126,7 +127,7 @@ class TrainConfig(_Strict):
                                            "the version of the env id the dataset records (Minari's MuJoCo datasets "
                                            "record v5), else v4")
     task: str | None = Field(None, description="dataset kind, e.g. 'medium', selects the per-dataset settings")
-    preset: Literal["paper", "cpu", "smoke"] = "cpu"
+    preset: Preset = "cpu"
     seed: int = Field(0, ge=0, lt=2**32)
     device: str = "cpu"
     threads: int | None = Field(None, ge=1, le=256)

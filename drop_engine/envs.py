@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Literal, get_args
 if TYPE_CHECKING:
     from .termination import TerminationFn
 
+EnvName = Literal["hopper", "walker2d", "halfcheetah"]  # the short names; get_env also takes gymnasium ids
 EnvVersion = Literal["v4", "v5"]
 VERSIONS: tuple[EnvVersion, ...] = get_args(EnvVersion)
 DEFAULT_VERSION: EnvVersion = "v4"  # D4RL's dynamics
@@ -18,7 +19,7 @@ DEFAULT_VERSION: EnvVersion = "v4"  # D4RL's dynamics
 
 @dataclass(frozen=True)
 class EnvSpec:
-    name: str
+    name: EnvName
     gym_name: str
     obs_dim: int
     act_dim: int
@@ -44,7 +45,7 @@ class EnvSpec:
         return 100.0 * (ret - self.random_score) / (self.expert_score - self.random_score)
 
 
-ENVS: dict[str, EnvSpec] = {
+ENVS: dict[EnvName, EnvSpec] = {
     "hopper": EnvSpec("hopper", "Hopper", 11, 3, -20.272305, 3234.3),
     "walker2d": EnvSpec("walker2d", "Walker2d", 17, 6, 1.629008, 4592.3, collect_steps=200_000),
     "halfcheetah": EnvSpec("halfcheetah", "HalfCheetah", 17, 6, -280.178953, 12135.0, collect_steps=200_000),

@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+from typing import Annotated
 
-from fastapi import Request
+from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -15,6 +17,11 @@ from kernel.models import Owner, Token, utcnow
 from .problems import Problem
 
 LOCAL_OWNER = "local"
+# Declares the scheme in the OpenAPI schema and reads the header; never answers by itself (auto_error=False), so a
+# missing or wrong header gets this module's problem+json 401, and `drop serve` may go without one.
+bearer = HTTPBearer(scheme_name="bearer", auto_error=False,
+                    description="`Authorization: Bearer <token>`; create one with `drop token create --name NAME`. "
+                                "Not needed by `drop serve` unless it runs with `--auth`.")
 
 
 def hash_token(token: str) -> str:
@@ -90,7 +97,8 @@ def _lookup(factory: sessionmaker[Session], digest: str) -> str | None:
         return session.scalar(select(Token.owner_id).where(Token.token_hash == digest, Token.revoked_at.is_(None)))
 
 
-async def current_owner(request: Request) -> str:
+async def current_owner(request: Request,
+                        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
     """FastAPI dependency: the owner id of this request. Async, so a remembered token costs no threadpool hop; the
     database is only asked in the threadpool."""
     state = request.app.state
@@ -99,11 +107,9 @@ async def current_owner(request: Request) -> str:
         if owner_id is None:
             owner_id = state.local_owner_id = await run_in_threadpool(_local_owner, state.sessions)
         return owner_id
-    header = request.headers.get("authorization", "")
-    scheme, _, token = header.partition(" ")
-    if scheme.lower() != "bearer" or not token.strip():
+    if credentials is None:  # no header, another scheme, or no token after `Bearer`
         raise _unauthorized("send `Authorization: Bearer <token>`; create one with `drop token create --name NAME`")
-    digest = hash_token(token.strip())
+    digest = hash_token(credentials.credentials)
     owner_id = state.tokens.get(digest)
     if owner_id is None:
         owner_id = await run_in_threadpool(_lookup, state.reader, digest)

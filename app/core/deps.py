@@ -28,8 +28,8 @@ def _cursor(prefix: str):
 
 DatasetCursor = _cursor("ds")
 JobCursor = _cursor("job")
-Owner = Depends(current_owner)
+OwnerId = Annotated[str, Depends(current_owner)]
 # Closed as soon as the endpoint returns, before the response is sent: a streamed response (the event stream) must
 # not keep a pooled connection for its whole life.
-DB = Depends(session, scope="function")
-Config = Depends(settings)
+DbSession = Annotated[Session, Depends(session, scope="function")]
+AppSettings = Annotated[Settings, Depends(settings)]

@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import logging
 from http import HTTPStatus
+from typing import Annotated, Any, get_args
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidatorFunctionWrapHandler, WrapValidator
+from pydantic_core import PydanticCustomError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from typing_extensions import TypeAliasType
 
 from kernel.storage_errors import storage_failure
 
@@ -75,6 +78,29 @@ _CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_f
           422: "validation_error", 429: "too_many_requests"}
 
 
+def one_of(choices: TypeAliasType, code: str) -> Any:
+    """The type `choices` (a named Literal of strings) for a request field whose other strings are refused with
+    problem code `code` (e.g. unknown_algorithm) rather than validation_error, and a message that lists the choices."""
+    allowed = ", ".join(get_args(choices.__value__))
+
+    def check(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            return handler(value)
+        except ValidationError:
+            if not isinstance(value, str):
+                raise  # not a string at all: the usual type error
+            raise PydanticCustomError("one_of", "{message}", {"message": f"{value!r} is not one of {allowed}",
+                                                              "problem_code": code}) from None
+
+    return Annotated[choices, WrapValidator(check)]
+
+
+def _code(exc: RequestValidationError) -> str:
+    """A field's own code (see `one_of`) when every bad field has one, the first of them; else validation_error."""
+    codes = [(err.get("ctx") or {}).get("problem_code") for err in exc.errors()]
+    return codes[0] if codes and all(codes) else "validation_error"
+
+
 def _field_errors(exc: RequestValidationError) -> list[dict]:
     out = []
     for err in exc.errors():
@@ -109,7 +135,7 @@ def install(app: FastAPI) -> None:
     async def _validation(_: Request, exc: RequestValidationError):
         errors = _field_errors(exc)
         detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
-        return problem_response(422, "validation_error", detail, errors=errors)
+        return problem_response(422, _code(exc), detail, errors=errors)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):

@@ -1,40 +1,41 @@
 """Datasets: streamed upload, validation in a limited subprocess, list, get, delete."""
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter, Query, Request, Response
-from sqlalchemy.orm import Session
 
-from kernel.settings import Settings
-
-from ..core.deps import DB, Config, DatasetCursor, Owner
+from ..core.deps import AppSettings, DatasetCursor, DbSession, OwnerId
 from ..core.pages import Page
 from ..observability.metrics import counting_rejections
 from . import service
 from .schemas import DatasetOut, dataset
+from .upload import REQUEST_BODY
 
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
 
 
 @router.post("", status_code=201, response_model=DatasetOut,
-             summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')")
+             summary="Upload a D4RL HDF5, .npz or Minari zip (raw body or multipart field 'file')",
+             openapi_extra={"requestBody": REQUEST_BODY})
 @counting_rejections
-async def upload_dataset(request: Request, name: str | None = Query(None, max_length=300),
-                         owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
+async def datasets_upload(request: Request, owner: OwnerId, s: DbSession, settings: AppSettings,
+                          name: Annotated[str | None, Query(max_length=300)] = None) -> dict:
     return dataset(await service.create(request, owner, name, s, settings))
 
 
 @router.get("", response_model=Page[DatasetOut], summary="List datasets, newest first")
-def list_datasets(after: DatasetCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner,
-                  s: Session = DB) -> dict:
+def datasets_list(owner: OwnerId, s: DbSession, after: DatasetCursor = None,
+                  limit: Annotated[int, Query(ge=1, le=100)] = 20) -> dict:
     return service.page(s, owner, after, limit)
 
 
 @router.get("/{dataset_id}", response_model=DatasetOut)
-def get_dataset(dataset_id: str, owner: str = Owner, s: Session = DB) -> dict:
+def datasets_get(dataset_id: str, owner: OwnerId, s: DbSession) -> dict:
     return dataset(service.owned_dataset(s, owner, dataset_id))
 
 
 @router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset (409 while a job uses it)")
-def delete_dataset(dataset_id: str, owner: str = Owner, s: Session = DB, settings: Settings = Config) -> Response:
+def datasets_delete(dataset_id: str, owner: OwnerId, s: DbSession, settings: AppSettings) -> Response:
     service.delete(s, owner, dataset_id, settings)
     return Response(status_code=204)

@@ -7,6 +7,7 @@ from pydantic import BaseModel, Field
 
 from kernel.models import Dataset
 
+from ..core.choices import DatasetFormat, EnvName
 from ..core.pages import iso, timestamp
 
 
@@ -15,12 +16,12 @@ class DatasetOut(BaseModel):
     object: Literal["dataset"]
     created_at: str = timestamp()
     name: str
-    format: str = Field(description="hdf5 | npz | minari")
+    format: DatasetFormat
     size_bytes: int
     decoded_bytes: int = Field(description="rows x bytes of a float32 transition: what it takes once loaded; it counts "
                                            "toward the storage quota when larger than size_bytes")
     sha256: str
-    env: str | None = Field(description="the env the dataset's dimensions match, if exactly one")
+    env: EnvName | None = Field(description="the env the dataset's dimensions match, if exactly one")
     obs_dim: int
     act_dim: int
     report: dict[str, Any] = Field(description="what validation found: sizes, episodes, returns, warnings")

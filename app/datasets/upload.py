@@ -13,10 +13,17 @@ from typing import Callable
 from fastapi import Request
 from python_multipart.multipart import MultipartParser, parse_options_header
 
+from ..core.openapi import BINARY
 from ..core.problems import Problem
 
 MULTIPART_SLACK = 64 * 1024  # headers and boundaries around the file part
 CONTROL_CHARS = re.compile(r"[\x00-\x1f\x7f]")
+# The bodies `receive` reads, for the OpenAPI schema: the endpoint streams its body itself, so FastAPI cannot see them.
+REQUEST_BODY = {"required": True, "content": {
+    "multipart/form-data": {"schema": {"type": "object", "required": ["file"], "properties": {"file": {
+        **BINARY, "description": "the dataset file; its filename names the dataset unless `name` is given"}}}},
+    "application/octet-stream": {"schema": BINARY},
+}}
 
 
 @dataclass
@@ -106,7 +113,8 @@ async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
     except Exception as exc:  # the multipart library's own parse errors
         raise Problem(400, "bad_multipart", f"the multipart body cannot be parsed: {exc}") from None
     if not state["found"]:
-        raise Problem(422, "missing_file", "the multipart body has no part named 'file' (use `curl -F file=@data.hdf5`)")
+        raise Problem(422, "missing_file",
+                      "the multipart body has no part named 'file' (use `curl -F file=@data.hdf5`)")
     return state["filename"]
 
 

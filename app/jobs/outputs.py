@@ -9,18 +9,17 @@ from typing import Annotated, Callable
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
-from sqlalchemy.orm import Session
 from starlette.background import BackgroundTask
 
 from drop_engine.plots import learning_curve
 from drop_engine.scores import Which
 from kernel.job_state import FINAL
-from kernel.settings import Settings
 
-from ..core.deps import DB, Config, Owner
+from ..core.deps import AppSettings, DbSession, OwnerId
+from ..core.openapi import BINARY
 from ..core.pages import Page
 from . import reads
-from .schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut
+from .schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, PolicyMetadata
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
 SSE_POLL_S = 0.5
@@ -63,8 +62,8 @@ async def _stream(request: Request, job_id: str, after: int, release: Callable[[
 @router.get("/events", response_model=Page[EventOut],
             summary="Job events, oldest first; `Accept: text/event-stream` streams them until the job ends",
             responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}}})
-async def job_events(job_id: str, request: Request, after: After = 0, limit: int = Query(100, ge=1, le=1000),
-                     owner: str = Owner):
+async def jobs_get_events(job_id: str, request: Request, owner: OwnerId, after: After = 0,
+                          limit: Annotated[int, Query(ge=1, le=1000)] = 100):
     sessions = request.app.state.reader
     if "text/event-stream" not in request.headers.get("accept", ""):
         return JSONResponse(await run_in_threadpool(reads.events_page, sessions, owner, job_id, after, limit))
@@ -80,39 +79,41 @@ async def job_events(job_id: str, request: Request, after: After = 0, limit: int
 
 
 @router.get("/metrics", response_model=Page[MetricOut], summary="Scalar training metrics, oldest first; filter by name")
-def job_metrics(job_id: str, name: str | None = Query(None, max_length=100, pattern=r"^[^\x00]*$"),
-                after: After = 0, limit: int = Query(1000, ge=1, le=10000), owner: str = Owner,
-                s: Session = DB) -> dict:
+def jobs_get_metrics(job_id: str, owner: OwnerId, s: DbSession,
+                     name: Annotated[str | None, Query(max_length=100, pattern=r"^[^\x00]*$")] = None,
+                     after: After = 0, limit: Annotated[int, Query(ge=1, le=10000)] = 1000) -> dict:
     return reads.metrics_page(s, owner, job_id, name, after, limit)
 
 
 @router.get("/evaluations", response_model=Page[EvaluationOut],
             summary="Evaluations in the real env (return and D4RL normalised score)")
-def job_evaluations(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+def jobs_get_evaluations(job_id: str, owner: OwnerId, s: DbSession) -> dict:
     return reads.evaluations_page(s, owner, job_id)
 
 
 @router.get("/checkpoints", response_model=Page[CheckpointOut],
             summary="Checkpoints still on disk (older ones are pruned by the trainer)")
-def job_checkpoints(job_id: str, owner: str = Owner, s: Session = DB) -> dict:
+def jobs_get_checkpoints(job_id: str, owner: OwnerId, s: DbSession) -> dict:
     return reads.checkpoints_page(s, owner, job_id)
 
 
 @router.get("/curve.png", summary="Learning curve (normalised score per evaluation)", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}})
-def job_curve(job_id: str, owner: str = Owner, s: Session = DB) -> Response:
+            responses={200: {"content": {"image/png": {"schema": BINARY}}}})
+def jobs_get_curve(job_id: str, owner: OwnerId, s: DbSession) -> Response:
     rows = reads.evaluations(s, owner, job_id)
     png = learning_curve(job_id, [r.epoch for r in rows], [r.normalized_score for r in rows])
     return Response(png, media_type="image/png")
 
 
-@router.get("/policy", summary="A trained policy, last or best: TorchScript or ONNX (obs batch -> actions), state_dict, "
-                               "or metadata", response_class=FileResponse)
-def job_policy(job_id: str,
-               which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one of the "
-                                                         "evaluation with the highest normalised score (the earlier of "
-                                                         "ties), chosen by evaluations in the real env")] = "last",
-               format: reads.PolicyFormat = "torchscript",
-               owner: str = Owner, s: Session = DB, settings: Settings = Config):
+@router.get("/policy", summary="A trained policy, last or best: TorchScript or ONNX (obs batch -> actions), "
+                               "state_dict, or metadata", response_class=FileResponse,
+            responses={200: {"description": "The file: binary, or JSON for `format=metadata`", "model": PolicyMetadata,
+                             "content": {"application/octet-stream": {"schema": BINARY}}}})
+def jobs_get_policy(job_id: str, owner: OwnerId, s: DbSession, settings: AppSettings,
+                    which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one "
+                                                              "of the evaluation with the highest normalised score "
+                                                              "(the earlier of ties), chosen by evaluations in the "
+                                                              "real env")] = "last",
+                    format: reads.PolicyFormat = "torchscript"):
     path, media = reads.policy_file(s, owner, job_id, which, format, settings)
     return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}")

@@ -47,13 +47,11 @@ def job(sessions: sessionmaker[Session], owner: str, job_id: str) -> dict:
         return schemas.job(owned_job(s, owner, job_id))
 
 
-def jobs_page(sessions: sessionmaker[Session], owner: str, status: str | None, after: str | None, limit: int) -> dict:
+def jobs_page(sessions: sessionmaker[Session], owner: str, status: JobStatus | None, after: str | None,
+              limit: int) -> dict:
     q = select(Job).where(Job.owner_id == owner).options(defer(Job.result))
     if status is not None:
-        if status not in set(JobStatus):
-            raise Problem(422, "validation_error", f"status: must be one of {', '.join(JobStatus)}",
-                          errors=[{"field": "status", "message": "unknown status"}])
-        q = q.where(Job.status == status)
+        q = q.where(Job.status == status.value)
     if after:
         q = q.where(Job.id < after)
     with sessions() as s:

@@ -5,17 +5,22 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from drop_engine.envs import get_env
 from kernel.models import Dataset
 from kernel.settings import Settings
 
-from ..core.problems import Problem
+from ..core.choices import Algorithm, EnvName, Preset
+from ..core.problems import Problem, one_of
 from . import limits
 
 # Identity fields are job fields, and the device and threads belong to the worker: not overridable.
-ALGORITHMS = ("drop", "mopo", "mbpo")
 RESERVED_OVERRIDES = {"algorithm", "env", "preset", "seed", "device", "task", "threads"}
 # Overrides nest two levels ({"sac": {"hidden": [64, 64]}}); hundreds of levels overflow the serialiser's depth limit.
 MAX_OVERRIDE_DEPTH = 8
+# The engine's choices; a value outside them is refused with a code of its own.
+AlgorithmChoice = one_of(Algorithm, "unknown_algorithm")
+EnvChoice = one_of(EnvName, "unknown_env")
+PresetChoice = one_of(Preset, "unknown_preset")
 
 
 def _depth(value: Any) -> int:
@@ -35,14 +40,24 @@ class JobRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dataset_id: str
-    algorithm: str = Field("drop", description="drop | mopo | mbpo")
-    env: str | None = Field(None, description="hopper | walker2d | halfcheetah; default: the env the dataset matches")
-    preset: str = Field("cpu", description="paper | cpu | smoke")
+    algorithm: AlgorithmChoice = "drop"
+    env: EnvChoice | None = Field(None, description="default: the env the dataset matches; a gymnasium id "
+                                                    "(Hopper-v4) names its env too")
+    preset: PresetChoice = "cpu"
     task: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$",
                              description="dataset kind (random, medium, ...) selecting the paper's settings")
     overrides: dict[str, Any] = Field(default_factory=dict, description='dotted keys, e.g. {"epochs": 50}')
     seed: int = Field(0, ge=0, le=2**31 - 1)
     max_runtime_s: int | None = Field(None, ge=5, le=30 * 24 * 3600, description="time limit of one attempt")
+
+    @field_validator("env", mode="before")
+    @classmethod
+    def _short_name(cls, env: Any) -> Any:
+        """'Hopper-v4' and 'HOPPER' mean hopper, as the engine reads them."""
+        try:
+            return get_env(env).name if isinstance(env, str) else env
+        except KeyError:
+            return env  # refused as unknown_env
 
     @field_validator("overrides")
     @classmethod
@@ -58,25 +73,16 @@ def _invalid(code: str, detail: str, field: str) -> Problem:
 
 def build(req: JobRequest, dataset: Dataset, settings: Settings) -> tuple[str, dict]:
     """(env name, config as JSON) for this request on this dataset, within the server's limits on a job."""
-    from drop_engine.config import PRESETS, build_config
-    from drop_engine.envs import get_env
+    from drop_engine.config import build_config
     from drop_engine.errors import ConfigError
     from drop_engine.resources import DataShape
 
-    if req.algorithm not in ALGORITHMS:
-        raise _invalid("unknown_algorithm", f"algorithm: {req.algorithm!r} is not one of {', '.join(ALGORITHMS)}",
-                       "algorithm")
-    if req.preset not in PRESETS:
-        raise _invalid("unknown_preset", f"preset: {req.preset!r} is not one of {', '.join(PRESETS)}", "preset")
     env_name = req.env or dataset.env
     if env_name is None:
         candidates = ", ".join(dataset.report.get("env_candidates") or []) or "none"
         raise _invalid("env_required", f"env: the dataset matches no single env (candidates: {candidates}); set env",
                        "env")
-    try:
-        spec = get_env(env_name)
-    except KeyError as exc:
-        raise _invalid("unknown_env", f"env: {exc.args[0]}", "env") from None
+    spec = get_env(env_name)
     if (spec.obs_dim, spec.act_dim) != (dataset.obs_dim, dataset.act_dim):
         raise _invalid("env_mismatch", f"env: {spec.name} has (obs, act) dims ({spec.obs_dim}, {spec.act_dim}) but "
                        f"dataset {dataset.id} has ({dataset.obs_dim}, {dataset.act_dim})", "env")

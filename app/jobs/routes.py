@@ -1,15 +1,15 @@
 """Jobs: create (idempotent), list, get, cancel."""
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
-from sqlalchemy.orm import Session
 
 from kernel.job_state import JobStatus
-from kernel.settings import Settings
 
-from ..core.deps import DB, Config, JobCursor, Owner
+from ..core.deps import AppSettings, DbSession, JobCursor, OwnerId
 from ..core.pages import Page
 from . import reads, service
 from .request import JobRequest
@@ -21,9 +21,9 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 @router.post("", status_code=201, response_model=JobOut, summary="Create a training job",
              responses={200: {"description": "A replay: the job an earlier request with this Idempotency-Key made",
                               "model": JobOut}})
-def create_job(req: JobRequest, request: Request, response: Response,
-               idempotency_key: str | None = Header(None, min_length=1, max_length=200),
-               owner: str = Owner, s: Session = DB, settings: Settings = Config) -> dict:
+def jobs_create(req: JobRequest, request: Request, response: Response, owner: OwnerId, s: DbSession,
+                settings: AppSettings,
+                idempotency_key: Annotated[str | None, Header(min_length=1, max_length=200)] = None) -> dict:
     row, created = service.create(s, owner, req, idempotency_key, settings, request.app.state.enqueue)
     if not created:
         response.status_code = 200
@@ -31,21 +31,21 @@ def create_job(req: JobRequest, request: Request, response: Response,
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
-async def list_jobs(request: Request, status: str | None = Query(None, description=" | ".join(JobStatus)),
-                    after: JobCursor = None, limit: int = Query(20, ge=1, le=100), owner: str = Owner) -> JSONResponse:
+async def jobs_list(request: Request, owner: OwnerId, status: JobStatus | None = None, after: JobCursor = None,
+                    limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JSONResponse:
     return JSONResponse(await run_in_threadpool(reads.jobs_page, request.app.state.reader, owner, status, after,
                                                 limit))
 
 
 @router.get("/{job_id}", response_model=JobOut)
-async def get_job(job_id: str, request: Request, owner: str = Owner) -> JSONResponse:
+async def jobs_get(job_id: str, request: Request, owner: OwnerId) -> JSONResponse:
     return JSONResponse(await run_in_threadpool(reads.job, request.app.state.reader, owner, job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
              summary="Cancel: a queued job at once, a running one at its next step",
              responses={200: {"description": "Already cancelled: nothing changed", "model": JobOut}})
-def cancel_job(job_id: str, response: Response, owner: str = Owner, s: Session = DB) -> dict:
+def jobs_cancel(job_id: str, response: Response, owner: OwnerId, s: DbSession) -> dict:
     """Safe to repeat: asking again while it stops answers 202 again, and once it is cancelled 200; nothing changes.
     A job that succeeded or failed cannot be cancelled: 409."""
     row, already = service.cancel(s, owner, job_id)

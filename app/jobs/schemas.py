@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
-from drop_engine.scores import FINAL_WINDOW
+from drop_engine.scores import FINAL_WINDOW, Which
 from kernel.job_state import JobStatus
 from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 
+from ..core.choices import Algorithm, EnvName, Preset
 from ..core.pages import iso, timestamp
 
 
@@ -23,18 +24,19 @@ class JobOut(BaseModel):
     id: str
     object: Literal["job"]
     created_at: str = timestamp()
-    status: Literal[tuple(s.value for s in JobStatus)]  # type: ignore[valid-type]
+    status: JobStatus
     dataset_id: str | None = Field(description="null once the dataset is deleted")
-    algorithm: str
-    env: str
-    preset: str
+    algorithm: Algorithm
+    env: EnvName
+    preset: Preset
     overrides: dict[str, Any]
     seed: int
     progress: dict[str, Any] | None
     latest_metrics: dict[str, Any] | None
     best_score: float | None = Field(description="the highest normalised score of any evaluation so far")
     last_score: float | None = Field(description="the normalised score of the latest evaluation")
-    best_epoch: int | None = Field(description="the epoch of best_score (the earlier of ties): the `which=best` policy's")
+    best_epoch: int | None = Field(description="the epoch of best_score (the earlier of ties): the `which=best` "
+                                               "policy's")
     final_score: float | None = Field(description=f"the mean normalised score of the last {FINAL_WINDOW} evaluations "
                                                   "(fewer if fewer ran): steadier than last_score")
     error: JobError | None
@@ -81,6 +83,24 @@ class CheckpointOut(BaseModel):
     epoch: int
     step: int
     size_bytes: int
+
+
+class PolicyMetadata(BaseModel):
+    """metadata.json beside an exported policy (`GET /policy?format=metadata`), as the trainer wrote it. Policies of
+    older runs may lack the fields that are not required."""
+
+    model_config = ConfigDict(extra="allow")
+    env: str
+    gym_id: str = Field(description="the gymnasium env the policy was evaluated in, e.g. Hopper-v5")
+    obs_dim: int
+    act_dim: int
+    algorithm: Algorithm
+    config: dict[str, Any] = Field(description="the whole training config")
+    epochs: int = Field(description="epochs the run trained")
+    which: Which | None = None
+    epoch: int | None = Field(None, description="the epoch this policy is from")
+    normalized_score: float | None = Field(None, description="this policy's evaluation's normalised score")
+    selected_by: str | None = Field(None, description="how this policy was chosen")
 
 
 def job(row: Job) -> dict:

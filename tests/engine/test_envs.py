@@ -1,10 +1,12 @@
 """Termination functions must agree with the real gymnasium envs; scores follow D4RL's normalisation."""
+from typing import get_args
+
 import numpy as np
 import pytest
 import torch
 
 from drop_engine.collect import collect_transitions, random_policy
-from drop_engine.envs import ENVS, get_env, termination_fn
+from drop_engine.envs import ENVS, EnvName, get_env, termination_fn
 
 
 @pytest.mark.parametrize("env", ["hopper", "walker2d", "halfcheetah"])
@@ -62,3 +64,8 @@ def test_true_step_reproduces_recorded_transitions(env):
     _, from_obs = true_step(env, arrays["observations"], arrays["actions"])
     unclipped = np.abs(arrays["infos/qvel"]).max(1) < 10
     np.testing.assert_allclose(from_obs[unclipped], arrays["next_observations"][unclipped], atol=1e-4)
+
+
+def test_every_env_name_has_its_spec():
+    """The API offers exactly the names of `EnvName` (its schema's enum): each must be a known env."""
+    assert sorted(ENVS) == sorted(get_args(EnvName)) and all(name == spec.name for name, spec in ENVS.items())

@@ -26,6 +26,9 @@ def dataset(client, tokens, hopper_file):
     ({"overrides": {"device": "cuda"}}, "overrides", "invalid_override"),
     ({"seed": -1}, "seed", "validation_error"),
     ({"colour": "red"}, "colour", "validation_error"),
+    ({"algorithm": 5}, "algorithm", "validation_error"),  # not a string at all: a type error, not an unknown name
+    ({"algorithm": "ppo", "preset": "huge"}, "preset", "unknown_algorithm"),  # the first bad field's code
+    ({"preset": "huge", "seed": -1}, "preset", "validation_error"),  # a field without a code of its own: the usual
 ])
 def test_bad_job_fields_are_422(alice, dataset, body, field, code):
     r = alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "preset": "smoke", **body})
@@ -33,6 +36,12 @@ def test_bad_job_fields_are_422(alice, dataset, body, field, code):
     assert r.headers["content-type"] == PROBLEM
     problem = r.json()
     assert problem["code"] == code and field in {e["field"] for e in problem["errors"]}, problem
+
+
+def test_a_gymnasium_id_names_its_env(alice, dataset):
+    r = alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "preset": "smoke", "env": "Hopper-v4"})
+    assert r.status_code == 201 and r.json()["env"] == "hopper", r.text
+    alice.post(f"/v1/jobs/{r.json()['id']}/cancel")
 
 
 def test_unknown_dataset_is_404(alice):
@@ -65,6 +74,7 @@ def test_list_filter_and_paging(alice, dataset):
     assert seen == sorted(seen, reverse=True)
     r = alice.get("/v1/jobs", params={"status": "bogus"})
     assert r.status_code == 422 and r.headers["content-type"] == PROBLEM
+    assert r.json()["errors"][0]["field"] == "query.status" and "cancelled" in r.json()["detail"], r.text
 
 
 def test_errors_are_problem_json(client, alice):
