@@ -91,8 +91,9 @@ def test_the_modules_import_no_cycle():
 SERVICE = ("dependencies", "service")
 NEEDS = {"drop_engine": ("dependencies",), "drop_client": ("dependencies",), "drop_cli": ("dependencies",),
          "kernel": SERVICE, "app": SERVICE, "worker": SERVICE}
-# Imported, not declared: FastAPI is built on Starlette and pins its version.
-COMES_WITH = {"starlette": "fastapi"}
+# Imported, not declared: each comes with the library that pins its version (FastAPI is built on Starlette, pydantic
+# on pydantic-core).
+COMES_WITH = {"starlette": "fastapi", "pydantic_core": "pydantic"}
 # Declared, never imported: torch.onnx.export writes the policy's ONNX file with onnx.
 USED_UNIMPORTED = {"onnx"}
 
