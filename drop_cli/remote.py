@@ -8,7 +8,7 @@ from typing import Callable, get_args
 
 import click
 
-from drop_client import DEFAULT_SERVER, ApiError, DropClient, DropError, PolicyFormat, Which, print_progress
+from drop_client import DEFAULT_SERVER, ApiError, DropClient, DropError, JobStatus, PolicyFormat, Which, print_progress
 from drop_engine.cli import Override
 from drop_engine.config import PRESETS, Algorithm
 
@@ -106,7 +106,7 @@ def jobs_submit(client: DropClient, dataset_id: str, algorithm: str | None, env:
 
 
 @jobs.command("list")
-@click.option("--status", help="only jobs of this status (queued, running, cancelling, succeeded, failed, cancelled)")
+@click.option("--status", type=click.Choice(get_args(JobStatus)), help="only jobs of this status")
 @remote
 def jobs_list(client: DropClient, status: str | None) -> None:
     """List jobs, newest first."""

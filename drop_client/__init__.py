@@ -7,7 +7,7 @@ API. Needs only httpx and httpx-sse; it imports nothing of the service or the en
         drop.wait(job["id"], progress=print_progress)
         drop.download_policy(job["id"], "policy.pt", which="best")
 """
-from .client import DEFAULT_SERVER, FINISHED, DropClient, PolicyFormat, Which, print_progress
+from .client import DEFAULT_SERVER, FINISHED, DropClient, JobStatus, PolicyFormat, Which, print_progress
 from .errors import (
     ApiError,
     BadRequest,
@@ -24,6 +24,6 @@ from .errors import (
     WaitTimeout,
 )
 
-__all__ = ["DEFAULT_SERVER", "FINISHED", "DropClient", "PolicyFormat", "Which", "print_progress", "ApiError",
-           "BadRequest", "Conflict", "DropError", "NetworkError", "NotFound", "PayloadTooLarge", "RateLimited",
-           "ServerError", "StreamInterrupted", "Unauthorized", "Unprocessable", "WaitTimeout"]
+__all__ = ["DEFAULT_SERVER", "FINISHED", "DropClient", "JobStatus", "PolicyFormat", "Which", "print_progress",
+           "ApiError", "BadRequest", "Conflict", "DropError", "NetworkError", "NotFound", "PayloadTooLarge",
+           "RateLimited", "ServerError", "StreamInterrupted", "Unauthorized", "Unprocessable", "WaitTimeout"]

@@ -16,6 +16,7 @@ DEFAULT_SERVER = "http://127.0.0.1:8000"
 FINISHED = frozenset({"succeeded", "failed", "cancelled"})
 Which = Literal["last", "best"]
 PolicyFormat = Literal["torchscript", "onnx", "state_dict", "metadata"]
+JobStatus = Literal["queued", "running", "cancelling", "succeeded", "failed", "cancelled"]
 
 
 class DropClient:

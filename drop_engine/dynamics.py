@@ -16,11 +16,6 @@ from .nn import EnsembleLinear, adam
 from .stopping import StopFlag, check, never
 
 
-class Swish(nn.Module):
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.silu(x)
-
-
 class GaussianEnsemble(nn.Module):
     """Members share one batched module; log-variance is soft-bounded by learned limits."""
 

@@ -104,6 +104,9 @@ class DbCallback(Callback):
     def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
         path = Path(path).resolve()
         with self.sessions.begin() as s:
+            # A worker that lost the job (re-queued and claimed by another) must not touch the new attempt's rows.
+            if s.scalar(select(Job.id).where(self._mine()).with_for_update()) is None:
+                return
             for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
                 # pruned by the trainer, or rewritten: a stop at an epoch boundary saves that epoch's name again
                 if row.path == str(path) or not Path(row.path).exists():

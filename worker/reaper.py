@@ -57,9 +57,11 @@ def _expire_dead(sessions: sessionmaker[Session], settings: Settings, now: datet
         else:
             to, values = JobStatus.QUEUED, {"worker": None, "enqueued_at": None}
             message = f"re-queued: the worker of attempt {row.attempts} stopped responding; will resume from checkpoint"
-        with sessions.begin() as s:  # only the row as it was seen: the same status, still the same attempt
-            transition(s, row.id, to, source=JobStatus(row.status), attempt=row.attempts, values=values,
-                       message=message)
+        # Only the row as it was seen: the same status, still the same attempt, and still silent (a heartbeat
+        # between the query and this UPDATE means its worker is alive).
+        with sessions.begin() as s:
+            transition(s, row.id, to, source=JobStatus(row.status), attempt=row.attempts,
+                       where=Job.heartbeat_at < stale, values=values, message=message)
 
 
 def _resend(sessions: sessionmaker[Session], enqueue: Enqueue, job_id: str, runtime: int, due) -> bool:

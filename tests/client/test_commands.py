@@ -12,4 +12,7 @@ def test_drop_gathers_every_command_and_has_a_version(capsys):
     assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("drop, version 0.")
     assert main(["train", "--dataset", "x.hdf5", "--out", "run", "--set", "epochs"]) == 2
     assert "'epochs' is not KEY=VALUE" in capsys.readouterr().err
+    # A status the API does not know is a usage error here, not a round trip to the server.
+    assert main(["jobs", "list", "--status", "runing", "--server", "http://127.0.0.1:9"]) == 2
+    assert "'runing' is not one of" in capsys.readouterr().err
 

@@ -1,13 +1,14 @@
 """The job's score columns follow the engine's rule (best: the earliest of ties; final: the mean of the last three)
-through evaluations and through a resumed attempt that drops what a lost one reported after its checkpoint."""
+through evaluations and through a resumed attempt that drops what a lost one reported after its checkpoint; the lost
+attempt's late reports write nothing."""
 from __future__ import annotations
 
 import pytest
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from app.core.auth import get_or_create_owner
 from kernel.db import make_engine, make_sessionmaker
-from kernel.models import Job
+from kernel.models import Job, JobCheckpoint
 from worker.callback import DbCallback
 
 
@@ -46,4 +47,14 @@ def test_scores_follow_evaluations_and_a_resume(sessions, tmp_path):
     assert _columns(sessions, "job_scores") == (9.0, 9.0, 2, 7.0)
     second.on_evaluation(3, 15.0, 1.0)
     second.on_evaluation(4, 30.0, 9.0)  # ties the best: epoch 2 stays the best
+    assert _columns(sessions, "job_scores") == (9.0, 9.0, 2, (9.0 + 1.0 + 9.0) / 3)
+
+    # The lost attempt's late reports change nothing of the new attempt's: no checkpoint row, no score.
+    late = tmp_path / "late.pt"
+    late.write_bytes(b"y")
+    first.on_checkpoint(late, 5, 0)
+    first.on_evaluation(5, 99.0, 99.0)
+    with sessions() as s:
+        paths = set(s.scalars(select(JobCheckpoint.path).where(JobCheckpoint.job_id == "job_scores")))
+    assert paths == {str(checkpoint.resolve())}
     assert _columns(sessions, "job_scores") == (9.0, 9.0, 2, (9.0 + 1.0 + 9.0) / 3)

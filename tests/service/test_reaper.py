@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from datetime import timedelta
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 
 from kernel.ids import new_id
 from kernel.models import Job, JobEvent, Owner, utcnow
@@ -75,6 +75,36 @@ def test_idle_worker_resends_queued_jobs_whose_message_was_lost(app, settings):
         assert sent.count(lost.id) == 1 and fresh.id not in sent
         with sessions() as s:
             assert s.get(Job, lost.id).enqueued_at > idle_since and s.get(Job, lost.id).status == "queued"
+    finally:
+        with sessions.begin() as s:
+            s.delete(s.get(Owner, owner.id))
+
+
+def test_a_heartbeat_between_the_query_and_the_move_keeps_the_job(app, settings, monkeypatch):
+    """The reaper reads the silent jobs, then moves each one: a heartbeat that lands in between means the worker is
+    alive, and its job stays running."""
+    import worker.reaper as reaper
+
+    sessions = app.state.sessions
+    with sessions.begin() as s:
+        owner = Owner(id=new_id("own"), name=f"reaper-{new_id('x')}")
+        s.add(owner)
+        s.flush()
+        job = _job(s, owner.id, status="running", attempts=1, enqueued_at=utcnow(),
+                   heartbeat_at=utcnow() - timedelta(seconds=settings.stale_after_s + 60))
+    move = reaper.transition
+
+    def heartbeat_first(s, job_id, *args, **kwargs):
+        if job_id == job.id:
+            with sessions.begin() as other:
+                other.execute(update(Job).where(Job.id == job_id).values(heartbeat_at=utcnow()))
+        return move(s, job_id, *args, **kwargs)
+
+    monkeypatch.setattr(reaper, "transition", heartbeat_first)
+    try:
+        assert job.id not in reap(sessions, settings, lambda *a: None)
+        with sessions() as s:
+            assert (s.get(Job, job.id).status, s.get(Job, job.id).attempts) == ("running", 1)
     finally:
         with sessions.begin() as s:
             s.delete(s.get(Owner, owner.id))
