@@ -141,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="bench/results")
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     p.add_argument("--threads", type=int, default=None, help="torch threads per run (default: 1 with --jobs > 1)")
+    p.add_argument("--report", action="store_true",
+                   help="only rewrite paper_table.md from the recorded runs of this setting; train nothing")
     args = p.parse_args(argv)
 
     out = Path(args.out)
@@ -151,17 +153,6 @@ def main(argv: list[str] | None = None) -> int:
     behaviour: dict[str, dict] = {}
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
     runs = Path(args.runs) / "_".join([f"{args.preset}-r{REVISION}", *same_setting["set"]]).replace("/", "-")
-
-    paths = {(env, kind): Path(args.data) / f"{env}-{kind}.hdf5" for env in args.envs for kind in args.kinds}
-    for (env, kind), path in paths.items():
-        if not path.exists():
-            raise SystemExit(f"{path} is missing: run `make bench-data` first")
-        behaviour[f"{env}-{kind}"] = describe(path)
-    done = {key(r) for r in on_file(kept.get("records", []), behaviour) if r["setting"] == same_setting}
-    # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
-    todo = [(path, behaviour[f"{env}-{kind}"]["dataset"], env, kind, algorithm, seed)
-            for (env, kind), path in paths.items() for seed in args.seeds for algorithm in args.algorithms
-            if (env, kind, algorithm, seed) not in done]
 
     def write(record: dict | None = None) -> str:
         """Merge into the file as it is now (another invocation may be filling other rows), under a lock."""
@@ -183,6 +174,21 @@ def main(argv: list[str] | None = None) -> int:
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
         (out / "paper_table.md").write_text(text)
         return text
+
+    if args.report:
+        print(write())
+        return 0
+
+    paths = {(env, kind): Path(args.data) / f"{env}-{kind}.hdf5" for env in args.envs for kind in args.kinds}
+    for (env, kind), path in paths.items():
+        if not path.exists():
+            raise SystemExit(f"{path} is missing: run `make bench-data` first")
+        behaviour[f"{env}-{kind}"] = describe(path)
+    done = {key(r) for r in on_file(kept.get("records", []), behaviour) if r["setting"] == same_setting}
+    # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
+    todo = [(path, behaviour[f"{env}-{kind}"]["dataset"], env, kind, algorithm, seed)
+            for (env, kind), path in paths.items() for seed in args.seeds for algorithm in args.algorithms
+            if (env, kind, algorithm, seed) not in done]
 
     # Runs side by side get one torch thread each, behaviour cloning included: two threads per run on a machine whose
     # cores are all taken spin-wait (BC took 5x longer). A speed setting, not part of a run's identity.
