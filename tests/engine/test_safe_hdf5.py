@@ -1,6 +1,7 @@
 """HDF5 files nobody vouches for, at the engine level: a file that would make a read reach another file, load a
 plugin, or allocate what a header claims is refused with a message that names the key, before any of that happens."""
 import h5py
+import hostile_hdf5
 import numpy as np
 import pytest
 
@@ -39,39 +40,12 @@ def _file_with(path, replace: str, make):
     return path
 
 
-def _external_link(secret):
-    def make(f):
-        f["rewards"] = h5py.ExternalLink(str(secret), "/rewards")
-    return make
-
-
-def _soft_link_through_external_group(secret):
-    def make(f):
-        f["elsewhere"] = h5py.ExternalLink(str(secret), "/")
-        f["rewards"] = h5py.SoftLink("/elsewhere/rewards")
-    return make
-
-
-def _external_storage(secret):
-    def make(f):
-        f.create_dataset("rewards", shape=(50,), dtype="f4", external=[(str(secret), 0, 200)])
-    return make
-
-
-def _virtual(secret):
-    def make(f):
-        layout = h5py.VirtualLayout(shape=(50,), dtype="f4")
-        layout[:] = h5py.VirtualSource(str(secret), "rewards", shape=(50,))
-        f.create_virtual_dataset("rewards", layout)
-    return make
-
-
 @pytest.mark.parametrize("make, message", [
-    (_external_link, "rewards: an external link to another file"),
-    (_soft_link_through_external_group, "elsewhere: an external link to another file"),
-    (_external_storage, "rewards: its data is stored in external files"),
-    (_virtual, "rewards: a virtual dataset, whose data would come from other files"),
-], ids=["external-link", "soft-link-via-external", "external-storage", "virtual-dataset"])
+    (hostile_hdf5.external_link, "rewards: an external link to another file"),
+    (hostile_hdf5.soft_link_through_external_group, "elsewhere: an external link to another file"),
+    (hostile_hdf5.external_storage, "rewards: its data is stored in external files"),
+    (hostile_hdf5.virtual, "rewards: a virtual dataset, whose data would come from other files"),
+], ids=hostile_hdf5.IDS)
 def test_reads_that_would_reach_other_files_are_refused(tmp_path, secret, make, message):
     path = _file_with(tmp_path / "hostile.hdf5", "rewards", make(secret))
     with pytest.raises(DatasetError) as info:

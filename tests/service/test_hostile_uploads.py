@@ -10,6 +10,7 @@ import zipfile
 from pathlib import Path
 
 import h5py
+import hostile_hdf5
 import numpy as np
 import pytest
 
@@ -40,39 +41,12 @@ def _upload_with(alice, path: Path, replace: str, make) -> dict:
     return r.json()
 
 
-def _external_link(secret: Path):
-    def make(f):
-        f["rewards"] = h5py.ExternalLink(str(secret), "/rewards")
-    return make
-
-
-def _soft_link_through_external_group(secret: Path):
-    def make(f):
-        f["elsewhere"] = h5py.ExternalLink(str(secret), "/")
-        f["rewards"] = h5py.SoftLink("/elsewhere/rewards")
-    return make
-
-
-def _external_storage(secret: Path):
-    def make(f):
-        f.create_dataset("rewards", shape=(50,), dtype="f4", external=[(str(secret), 0, 200)])
-    return make
-
-
-def _virtual(secret: Path):
-    def make(f):
-        layout = h5py.VirtualLayout(shape=(50,), dtype="f4")
-        layout[:] = h5py.VirtualSource(str(secret), "rewards", shape=(50,))
-        f.create_virtual_dataset("rewards", layout)
-    return make
-
-
 @pytest.mark.parametrize("make, needle", [
-    (_external_link, "external link"),
-    (_soft_link_through_external_group, "external link"),
-    (_external_storage, "external files"),
-    (_virtual, "virtual dataset"),
-], ids=["external-link", "soft-link-via-external", "external-storage", "virtual-dataset"])
+    (hostile_hdf5.external_link, "external link"),
+    (hostile_hdf5.soft_link_through_external_group, "external link"),
+    (hostile_hdf5.external_storage, "external files"),
+    (hostile_hdf5.virtual, "virtual dataset"),
+], ids=hostile_hdf5.IDS)
 def test_hdf5_reaching_other_files(alice, clean, tmp_path, secret, make, needle):
     body = _upload_with(alice, tmp_path / "hostile.hdf5", "rewards", make(secret))
     _assert_problem_body(body, needle)
