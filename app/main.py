@@ -8,7 +8,8 @@ from typing import AsyncIterator
 
 from fastapi import FastAPI
 
-from kernel.db import make_engine, make_reader, make_sessionmaker, schema_problem
+from kernel.db import make_engine, make_sessionmaker, schema_problem
+from kernel.fast_reads import FastReads
 from kernel.logs import configure
 from kernel.queue import enqueue, make_celery
 from kernel.settings import Settings, get_settings
@@ -53,7 +54,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
-    app.state.reader = make_reader(engine)
+    app.state.fast_reads = FastReads(engine, settings.db_pool_size)
     app.state.events = EventWaker()
     app.state.stream_slots = stream_slots(settings)
     app.state.upload_slots = upload_slots(settings)
@@ -80,16 +81,19 @@ def served_app() -> FastAPI:
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """On PostgreSQL, listen for new job events while the app serves (see app/jobs/event_bus.py)."""
-    engine = app.state.engine
-    if engine.dialect.name != "postgresql":
-        yield
-        return
-    conninfo = engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
-    listener = asyncio.create_task(listen(conninfo, app.state.events))
+    """The hot reads' pool (kernel/fast_reads.py) and, on PostgreSQL, the listener for new job events
+    (app/jobs/event_bus.py), while the app serves."""
+    engine, fast_reads = app.state.engine, app.state.fast_reads
+    await fast_reads.open()
+    listener = None
+    if engine.dialect.name == "postgresql":
+        conninfo = engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
+        listener = asyncio.create_task(listen(conninfo, app.state.events))
     try:
         yield
     finally:
-        listener.cancel()
-        with suppress(asyncio.CancelledError):
-            await listener
+        if listener is not None:
+            listener.cancel()
+            with suppress(asyncio.CancelledError):
+                await listener
+        await fast_reads.close()

@@ -3,18 +3,20 @@
 Starts everything on loopback from scratch: a throwaway PostgreSQL database (127.0.0.1:5432, user postgres), a private
 Redis queue (127.0.0.1:6379), `drop api` (uvicorn) and one `drop worker` as subprocesses. It makes a token with
 `drop token create`, uploads a small real hopper dataset and starts a long `cpu`-preset job on it. Once the worker
-trains, for --seconds: --clients clients poll four read endpoints back to back, --uploads clients upload --upload-mb MB
-D4RL-layout files one after another (each must answer 201 and then be readable with GET), and --sse clients stream
-the job's events. It records latency percentiles, counts and errors per endpoint, upload throughput, the API process's
-peak RSS and the job's fate (still running or succeeded, never failed or lost). Everything it started is removed at
-the end, Ctrl-C included.
+trains, for --seconds: --clients clients poll four read endpoints (wrk connections, spread evenly over the endpoints)
+back to back, or --rate times a second each; --uploads clients upload --upload-mb MB D4RL-layout files one after
+another (each must answer 201 and then be readable with GET); and --sse clients stream the job's events. It records
+latency percentiles, counts and errors per endpoint, upload throughput, the events' delay from creation to arrival,
+the API process's peak RSS and the job's fate (still running or succeeded, never failed or lost). Everything it
+started is removed at the end, Ctrl-C included. Before any of it, the ceiling: `GET /healthz` against
+`GET /v1/jobs/{id}` with wrk, the API alone.
 
     .venv/bin/python bench/service_load.py [--seconds 60] [--clients 50] [--uploads 5] [--upload-mb 100] [--sse 3]
     make bench-load                                   # the defaults
     .venv/bin/python bench/service_load.py --clients 5 --uploads 1 --upload-mb 10 --seconds 10   # a quick look
 
-Writes bench/results/service_load.json and .md. The clients run in this process on the same machine as the service,
-so on a small machine their own CPU use is part of what the latencies measure.
+Writes bench/results/service_load.json and .md. The pollers are wrk (C), so their CPU use is small; the uploads and
+the event streams are this process's asyncio clients, on the same cores as the service.
 """
 from __future__ import annotations
 
@@ -99,7 +101,8 @@ def service(folder: Path, upload_bytes: int, repo: Path = REPO,
         # Quotas far above what the benchmark sends, so none of its own traffic is refused.
         settings = Settings(data_dir=folder / "data", database_url=url, broker_url=REDIS_URL, queue=queue,
                             max_upload_bytes=max(2 * 1024**3, 2 * upload_bytes), max_stored_bytes_per_owner=2**50,
-                            max_active_jobs_per_owner=10_000, max_streams_per_owner=10_000, worker_threads=1)
+                            max_active_jobs_per_owner=10_000, max_streams_per_owner=10_000, worker_threads=1,
+                            max_job_sac_updates=10**9, max_job_metric_rows=10**9)
         env = settings_env(settings)
         drop = [sys.executable, "-m", "app.cli"]
         try:
@@ -256,19 +259,48 @@ class Recorder:
         return sum(n for status, n in self.statuses[endpoint].items() if not status.startswith("2"))
 
 
-async def poll(client: httpx.AsyncClient, targets: list[tuple[str, str]], first: int, stop_at: float,
-               rec: Recorder, rate: float) -> None:
-    """Back to back (rate 0: the closed-loop maximum), or `rate` requests a second on a fixed schedule (an offered
-    load: a slow answer does not slow the schedule, it only makes the next request late)."""
-    i = first
-    next_at = time.monotonic() + (first % 10) / (10 * rate) if rate else 0.0  # spread the clients' phases
-    while time.monotonic() < stop_at:
-        if rate:
-            await asyncio.sleep(max(0.0, next_at - time.monotonic()))
-            next_at += 1 / rate
-        endpoint, url = targets[i % len(targets)]
-        i += 1
-        await rec.call(endpoint, client.get(url))
+# One wrk process per endpoint: wrk's `delay()` makes each connection a client that asks `rate` times a second (the
+# think time between an answer and its next request), or back to back without it; `done()` prints the percentiles.
+WRK_SCRIPT = """
+local delay_ms = 0
+function init(args) delay_ms = tonumber(args[1]) end
+if tonumber(os.getenv("WRK_DELAY_MS") or "0") > 0 then
+  function delay() return delay_ms end
+end
+function done(summary, latency, requests)
+  local e = summary.errors
+  io.write(string.format('{"requests": %d, "non_2xx": %d, "socket_errors": %d, "seconds": %.3f, "min": %.1f, '
+    .. '"p50": %.1f, "p95": %.1f, "p99": %.1f, "max": %.1f}\\n', summary.requests, e.status,
+    e.connect + e.read + e.write + e.timeout, summary.duration / 1e6, latency.min / 1e3, latency:percentile(50) / 1e3,
+    latency:percentile(95) / 1e3, latency:percentile(99) / 1e3, latency.max / 1e3))
+end
+"""
+
+
+async def poll_with_wrk(base: str, token: str, targets: list[tuple[str, str]], args, folder: Path) -> dict:
+    """Per endpoint: requests, errors, per second and latency percentiles (ms) of args.clients connections in all,
+    spread evenly over the endpoints, for args.seconds. The load comes from wrk (C), so the client's own CPU use is
+    small next to the service's; a Python client on these cores saturated before the API did."""
+    script = folder / "poll.lua"
+    script.write_text(WRK_SCRIPT)
+    delay_ms = round(1000 / args.rate) if args.rate else 0
+    procs = []
+    for n, (name, url) in enumerate(targets):
+        connections = args.clients // len(targets) + (n < args.clients % len(targets))
+        procs.append((name, await asyncio.create_subprocess_exec(
+            "wrk", "-t1", f"-c{connections}", f"-d{args.seconds:g}s", "--timeout", "10s", "-s", str(script),
+            "-H", f"Authorization: Bearer {token}", base + url, "--", str(delay_ms),
+            env={**os.environ, "WRK_DELAY_MS": str(delay_ms)}, stdout=asyncio.subprocess.PIPE)))
+    endpoints = {}
+    for name, proc in procs:
+        out, _ = await proc.communicate()
+        r = json.loads(out.decode().strip().splitlines()[-1])
+        errors = r["non_2xx"] + r["socket_errors"]
+        endpoints[name] = {"requests": r["requests"], "errors": errors, "per_s": round(r["requests"] / r["seconds"], 1),
+                           "statuses": {"2xx": r["requests"] - r["non_2xx"], "other": r["non_2xx"],
+                                        "socket errors": r["socket_errors"]},
+                           "latency_ms": {k: r[k] for k in ("min", "p50", "p95", "p99", "max")}}
+    return endpoints
 
 
 async def upload_loop(client: httpx.AsyncClient, path: Path, stop_at: float, rec: Recorder, out: list[dict]) -> None:
@@ -377,23 +409,26 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
         stop_at = began + args.seconds
         streams = [asyncio.create_task(stream_events(client, f"/v1/jobs/{job_id}/events", rec, delays))
                    for _ in range(args.sse)]
-        bounded = [asyncio.create_task(poll(client, targets, i, stop_at, rec, args.rate)) for i in range(args.clients)]
-        bounded += [asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads))
-                    for _ in range(args.uploads)]
+        pollers = asyncio.create_task(poll_with_wrk(base, token, targets, args, train.parent))
+        bounded = [pollers, *(asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads))
+                    for _ in range(args.uploads))]
         try:
             while not all(t.done() for t in bounded):
                 await asyncio.wait(bounded, timeout=10)
-                done = sum(len(v) for v in rec.latency.values())
-                print(f"  {time.monotonic() - began:5.0f} s: {done} requests, {sum(rec.problems.values())} problems, "
+                print(f"  {time.monotonic() - began:5.0f} s: {sum(rec.problems.values())} problems, "
                       f"{len(uploads)} uploads done", flush=True)
         finally:  # the streams never end by themselves, and on Ctrl-C nothing may outlive the client
             for t in streams + bounded:
                 t.cancel()
             outcomes = await asyncio.gather(*bounded, *streams, return_exceptions=True)
-        polls_s, uploads_s = args.seconds, time.monotonic() - began
+        uploads_s = time.monotonic() - began
         for outcome in outcomes:
             if isinstance(outcome, Exception):
                 rec.failed("client crashed", outcome)
+        polled = pollers.result() if pollers.done() and not pollers.cancelled() and not pollers.exception() else {}
+        for name, endpoint in polled.items():
+            if endpoint["errors"]:
+                rec.problem(name, f"{endpoint['errors']} errors ({endpoint['statuses']})")
 
         job_end = (await client.get(f"/v1/jobs/{job_id}")).json()
         if job_end["status"] not in JOB_OK:
@@ -404,21 +439,23 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
         for name, proc in (("API", api), ("worker", worker)):
             if proc.poll() is not None:
                 rec.problem(name, f"process exited with {proc.returncode}")
-        return report(args, rec, uploads, delays, upload.stat().st_size, polls_s, uploads_s, load_start,
+        return report(args, rec, polled, uploads, delays, upload.stat().st_size, uploads_s, load_start,
                       {"start": round(rss_start, 1), "peak": rss_peak and round(rss_peak, 1)},
                       {"id": job_id, "status_end": job_end["status"], "progress_start": job_start["progress"],
                        "progress_end": job_end.get("progress"), "overrides": JOB_OVERRIDES})
 
 
 # ------------------------------------------------------------------------------------------------ results
-def report(args, rec: Recorder, uploads: list[dict], delays: list[float], upload_bytes: int, polls_s: float,
+def report(args, rec: Recorder, polled: dict, uploads: list[dict], delays: list[float], upload_bytes: int,
            uploads_s: float, load_start: tuple, rss: dict, job: dict) -> dict:
-    endpoints = {}
-    for name in sorted(rec.latency):
-        duration = uploads_s if name.startswith("POST") else polls_s
+    """The polled endpoints as wrk measured them, and the SSE connects and uploads as this client did."""
+    endpoints = dict(polled)
+    for name in rec.latency:
         endpoints[name] = {"requests": len(rec.latency[name]), "errors": rec.errors(name),
-                           "per_s": round(len(rec.latency[name]) / duration, 1),
+                           "per_s": round(len(rec.latency[name]) / (uploads_s if name.startswith("POST") else
+                                                                    args.seconds), 1),
                            "statuses": dict(rec.statuses[name]), "latency_ms": percentiles(rec.latency[name])}
+    endpoints = dict(sorted(endpoints.items()))
     ok = [u for u in uploads if u["status"] == 201 and u.get("readable")]
     return {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -32,11 +32,6 @@ def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
 
 
-def make_reader(engine: Engine) -> sessionmaker[Session]:
-    """Sessions for single-statement reads: autocommit spares a read its BEGIN and ROLLBACK round trips."""
-    return make_sessionmaker(engine.execution_options(isolation_level="AUTOCOMMIT"))
-
-
 @contextmanager
 def transaction(factory: sessionmaker[Session]) -> Iterator[Session]:
     """One unit of work: commit on success, roll back on any error."""

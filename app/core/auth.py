@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.ids import new_id
@@ -92,15 +92,12 @@ def _local_owner(factory: sessionmaker[Session]) -> str:
         return get_or_create_owner(session, LOCAL_OWNER).id
 
 
-def _lookup(factory: sessionmaker[Session], digest: str) -> str | None:
-    with factory() as session:
-        return session.scalar(select(Token.owner_id).where(Token.token_hash == digest, Token.revoked_at.is_(None)))
+TOKEN_OWNER = select(Token.owner_id).where(Token.token_hash == bindparam("digest"), Token.revoked_at.is_(None))
 
 
 async def current_owner(request: Request,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
-    """FastAPI dependency: the owner id of this request. Async, so a remembered token costs no threadpool hop; the
-    database is only asked in the threadpool."""
+    """FastAPI dependency: the owner id of this request. Async, so a remembered token costs no threadpool hop."""
     state = request.app.state
     if state.settings.auth_disabled:
         owner_id = getattr(state, "local_owner_id", None)
@@ -112,8 +109,9 @@ async def current_owner(request: Request,
     digest = hash_token(credentials.credentials)
     owner_id = state.tokens.get(digest)
     if owner_id is None:
-        owner_id = await run_in_threadpool(_lookup, state.reader, digest)
-        if owner_id is None:
+        row = await state.fast_reads.one(TOKEN_OWNER, digest=digest)
+        if row is None:
             raise _unauthorized("unknown or revoked token")
+        owner_id = row.owner_id
         state.tokens.put(digest, owner_id)
     return owner_id

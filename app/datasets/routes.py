@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
 
 from ..core.deps import AppSettings, DatasetCursor, DbSession, OwnerId
 from ..core.pages import Page
@@ -31,8 +32,8 @@ def datasets_list(owner: OwnerId, s: DbSession, after: DatasetCursor = None,
 
 
 @router.get("/{dataset_id}", response_model=DatasetOut)
-def datasets_get(dataset_id: str, owner: OwnerId, s: DbSession) -> dict:
-    return dataset(service.owned_dataset(s, owner, dataset_id))
+async def datasets_get(dataset_id: str, request: Request, owner: OwnerId) -> JSONResponse:
+    return JSONResponse(await service.get(request.app.state.fast_reads, owner, dataset_id))
 
 
 @router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset (409 while a job uses it)")

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from drop_engine.data_rows import DataShape
+from kernel.fast_reads import FastReads
 from kernel.ids import is_id, new_id
 from kernel.job_state import ACTIVE, status_in
 from kernel.models import Dataset, Job
@@ -23,14 +24,29 @@ from .schemas import dataset as dataset_dict
 from .upload import Upload, receive
 from .validate import Invalid
 
+DATASET = select(Dataset.__table__).where(Dataset.id == bindparam("dataset_id"),
+                                          Dataset.owner_id == bindparam("owner"))
+
+
+def _not_found(dataset_id: str) -> Problem:
+    return Problem(404, "not_found", f"dataset {dataset_id} not found")
+
 
 def owned_dataset(s: Session, owner_id: str, dataset_id: str) -> Dataset:
-    """The owner's dataset or 404."""
+    """The owner's dataset or 404 (for the changes, which hold an ORM session)."""
     q = select(Dataset).where(Dataset.id == dataset_id, Dataset.owner_id == owner_id)
     row = s.scalar(q) if is_id(dataset_id, "ds") else None
     if row is None:
-        raise Problem(404, "not_found", f"dataset {dataset_id} not found")
+        raise _not_found(dataset_id)
     return row
+
+
+async def get(reads: FastReads, owner: str, dataset_id: str) -> dict:
+    """The owner's dataset, read as the job reads are (app/jobs/reads.py), or 404."""
+    row = await reads.one(DATASET, dataset_id=dataset_id, owner=owner) if is_id(dataset_id, "ds") else None
+    if row is None:
+        raise _not_found(dataset_id)
+    return dataset_dict(row)
 
 
 def page(s: Session, owner: str, after: str | None, limit: int) -> dict:

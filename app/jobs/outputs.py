@@ -7,7 +7,6 @@ import time
 from typing import Annotated, Callable
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
@@ -31,13 +30,13 @@ After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a 
 async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
     """Events after `after` until the job ends. Each read takes a pooled connection only for its query; in between the
     stream waits for the job's next notification (PostgreSQL) or polls every SSE_POLL_S (SQLite, or listener down)."""
-    factory, waker = request.app.state.reader, request.app.state.events
+    fast_reads, waker = request.app.state.fast_reads, request.app.state.events
     try:
         with waker.subscribe(job_id) as topic:
             quiet = 0.0
             while True:
                 seen = topic.version
-                items, status = await run_in_threadpool(reads.events_after, factory, job_id, after, 500)
+                items, status = await reads.events_after(fast_reads, job_id, after, 500)
                 for item in items:
                     after = item["id"]
                     yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
@@ -64,10 +63,10 @@ async def _stream(request: Request, job_id: str, after: int, release: Callable[[
             responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}}})
 async def jobs_get_events(job_id: str, request: Request, owner: OwnerId, after: After = 0,
                           limit: Annotated[int, Query(ge=1, le=1000)] = 100):
-    sessions = request.app.state.reader
+    fast_reads = request.app.state.fast_reads
     if "text/event-stream" not in request.headers.get("accept", ""):
-        return JSONResponse(await run_in_threadpool(reads.events_page, sessions, owner, job_id, after, limit))
-    await run_in_threadpool(reads.job, sessions, owner, job_id)  # 404 unless it is the owner's
+        return JSONResponse(await reads.events_page(fast_reads, owner, job_id, after, limit))
+    await reads.check_owned(fast_reads, owner, job_id)
     last = request.headers.get("last-event-id", "")
     start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after
     release = request.app.state.stream_slots.take(owner)

@@ -1,20 +1,20 @@
 """What the job routes read: a job by its owner (404 otherwise), the job list, a job's events and its outputs.
 
-The hot reads (a job, the job list, a job's events) are plain functions on a session factory. A route runs one in the
-threadpool in a single hop, with a session of its own held only for the query (from `app.state.reader`: autocommit,
-so a read is one round trip, not BEGIN, SELECT and ROLLBACK), and sends the dicts as they are: the serializers
-already produce the documented shapes, so validating them again against the response model would only spend the
-time twice.
+The hot reads (a job, the job list, a job's events) are statements built once and awaited through the API's
+`FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM. Their
+answers are sent as the dicts the serializers make, which already have the documented shapes: validating them again
+against the response model would only spend the time twice. The other reads take the request's ORM session.
 """
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Literal
 
-from sqlalchemy import select
-from sqlalchemy.orm import Session, defer, sessionmaker
+from sqlalchemy import bindparam, select
+from sqlalchemy.orm import Session, defer
 
 from drop_engine.scores import Which
+from kernel.fast_reads import FastReads
 from kernel.ids import is_id
 from kernel.job_state import JobStatus
 from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
@@ -31,49 +31,77 @@ POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
                 "onnx": ("policy.onnx", "application/octet-stream"),
                 "metadata": ("metadata.json", "application/json")}
 
+# The API never shows a job's `result` (the engine's full report), so it is not read.
+_JOB_COLUMNS = [c for c in Job.__table__.c if c.name != "result"]
+_OWNED = (Job.id == bindparam("job_id"), Job.owner_id == bindparam("owner"))
+JOB = select(*_JOB_COLUMNS).where(*_OWNED)
+JOB_EXISTS = select(Job.id).where(*_OWNED)
+JOB_STATUS = select(Job.status).where(Job.id == bindparam("job_id"))
+EVENTS = (select(JobEvent.__table__).where(JobEvent.job_id == bindparam("job_id"), JobEvent.id > bindparam("after"))
+          .order_by(JobEvent.id).limit(bindparam("limit")))
+
+
+def _jobs_list(by_status: bool, paged: bool):
+    q = select(*_JOB_COLUMNS).where(Job.owner_id == bindparam("owner"))
+    if by_status:
+        q = q.where(Job.status == bindparam("status"))
+    if paged:
+        q = q.where(Job.id < bindparam("after"))
+    return q.order_by(Job.id.desc()).limit(bindparam("limit"))
+
+
+JOBS = {(by_status, paged): _jobs_list(by_status, paged) for by_status in (False, True) for paged in (False, True)}
+
+
+def _not_found(job_id: str) -> Problem:
+    return Problem(404, "not_found", f"job {job_id} not found")
+
 
 def owned_job(s: Session, owner_id: str, job_id: str) -> Job:
-    """The owner's job or 404."""
-    # The API never shows a job's `result` (the engine's full report), so it is not read.
+    """The owner's job or 404 (for the reads that hold an ORM session)."""
     q = select(Job).where(Job.id == job_id, Job.owner_id == owner_id).options(defer(Job.result))
     row = s.scalar(q) if is_id(job_id, "job") else None
     if row is None:
-        raise Problem(404, "not_found", f"job {job_id} not found")
+        raise _not_found(job_id)
     return row
 
 
-def job(sessions: sessionmaker[Session], owner: str, job_id: str) -> dict:
-    with sessions() as s:
-        return schemas.job(owned_job(s, owner, job_id))
+async def check_owned(reads: FastReads, owner: str, job_id: str) -> None:
+    """404 unless the job is the owner's."""
+    if not is_id(job_id, "job") or await reads.one(JOB_EXISTS, job_id=job_id, owner=owner) is None:
+        raise _not_found(job_id)
 
 
-def jobs_page(sessions: sessionmaker[Session], owner: str, status: JobStatus | None, after: str | None,
-              limit: int) -> dict:
-    q = select(Job).where(Job.owner_id == owner).options(defer(Job.result))
+async def job(reads: FastReads, owner: str, job_id: str) -> dict:
+    row = await reads.one(JOB, job_id=job_id, owner=owner) if is_id(job_id, "job") else None
+    if row is None:
+        raise _not_found(job_id)
+    return schemas.job(row)
+
+
+async def jobs_page(reads: FastReads, owner: str, status: JobStatus | None, after: str | None, limit: int) -> dict:
+    params = {"owner": owner, "limit": limit + 1}
     if status is not None:
-        q = q.where(Job.status == status.value)
+        params["status"] = status.value
     if after:
-        q = q.where(Job.id < after)
-    with sessions() as s:
-        return fetch_page(s, q.order_by(Job.id.desc()), schemas.job, limit)
+        params["after"] = after
+    rows = await reads.all(JOBS[(status is not None, bool(after))], **params)
+    return page([schemas.job(r) for r in rows[:limit]], len(rows) > limit)
 
 
-def events_page(sessions: sessionmaker[Session], owner: str, job_id: str, after: int, limit: int) -> dict:
-    with sessions() as s:
-        owned_job(s, owner, job_id)
-        q = select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after).order_by(JobEvent.id)
-        return fetch_page(s, q, schemas.event, limit)
+async def events_page(reads: FastReads, owner: str, job_id: str, after: int, limit: int) -> dict:
+    await check_owned(reads, owner, job_id)
+    rows = await reads.all(EVENTS, job_id=job_id, after=after, limit=limit + 1)
+    return page([schemas.event(r) for r in rows[:limit]], len(rows) > limit)
 
 
-def events_after(sessions: sessionmaker[Session], job_id: str, after: int, limit: int) -> tuple[list[dict], str]:
+async def events_after(reads: FastReads, job_id: str, after: int, limit: int) -> tuple[list[dict], str | None]:
     """(events after `after`, the job's status), for the event stream. The status is read first: a final status
     commits together with its events, so when it is final here they are all in the rows read next, and the stream
     cannot end short of them."""
-    with sessions() as s:
-        status = s.scalar(select(Job.status).where(Job.id == job_id))
-        rows = s.scalars(select(JobEvent).where(JobEvent.job_id == job_id, JobEvent.id > after)
-                         .order_by(JobEvent.id).limit(limit))
-        return [schemas.event(r) for r in rows], status
+    status = await reads.one(JOB_STATUS, job_id=job_id)
+    rows = await reads.all(EVENTS, job_id=job_id, after=after, limit=limit)
+    return [schemas.event(r) for r in rows], status and status.status
 
 
 def metrics_page(s: Session, owner: str, job_id: str, name: str | None, after: int, limit: int) -> dict:

@@ -4,7 +4,6 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
 from kernel.job_state import JobStatus
@@ -33,13 +32,12 @@ def jobs_create(req: JobRequest, request: Request, response: Response, owner: Ow
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
 async def jobs_list(request: Request, owner: OwnerId, status: JobStatus | None = None, after: JobCursor = None,
                     limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JSONResponse:
-    return JSONResponse(await run_in_threadpool(reads.jobs_page, request.app.state.reader, owner, status, after,
-                                                limit))
+    return JSONResponse(await reads.jobs_page(request.app.state.fast_reads, owner, status, after, limit))
 
 
 @router.get("/{job_id}", response_model=JobOut)
 async def jobs_get(job_id: str, request: Request, owner: OwnerId) -> JSONResponse:
-    return JSONResponse(await run_in_threadpool(reads.job, request.app.state.reader, owner, job_id))
+    return JSONResponse(await reads.job(request.app.state.fast_reads, owner, job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,

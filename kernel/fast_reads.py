@@ -1,0 +1,85 @@
+"""Single-statement reads for the API's hot endpoints (a job, the job list, a job's events, a dataset, a token),
+awaited on the event loop.
+
+A read through a pooled ORM session in the threadpool cost about 520 µs of the API's time on PostgreSQL, the same
+query through psycopg's async pool 180 µs (bench/results/service_load.md). So on PostgreSQL each statement is compiled
+once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round trip. On
+SQLite (`drop serve`) the same statement runs through SQLAlchemy in the threadpool. Rows come back with attribute
+access either way (psycopg's namedtuple rows, SQLAlchemy's `Row`), so serialisers read them as they read ORM objects.
+
+Statements are built once, at import, with named `bindparam`s, and passed with their values: compiling is cached by
+the statement object, so a statement built per request would be compiled per request.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any, Sequence
+
+from sqlalchemy.engine import Engine
+from sqlalchemy.sql import Executable
+
+log = logging.getLogger("drop.api")
+
+
+class FastReads:
+    """The API process's executor of hot reads: open() at startup, close() at shutdown."""
+
+    def __init__(self, engine: Engine, size: int):
+        self.engine = engine.execution_options(isolation_level="AUTOCOMMIT")  # SQLite: one statement, no BEGIN
+        self.size = size
+        self._compiled: dict[int, tuple[Executable, str]] = {}  # id -> (the statement, kept alive; its SQL)
+        self._pool = None
+        self._lost: tuple[type[Exception], ...] = ()
+
+    @property
+    def on_postgresql(self) -> bool:
+        return self.engine.dialect.name == "postgresql"
+
+    async def open(self) -> None:
+        if not self.on_postgresql:
+            return
+        from psycopg import OperationalError
+        from psycopg.rows import namedtuple_row
+        from psycopg_pool import AsyncConnectionPool
+
+        self._lost = (OperationalError,)
+        conninfo = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
+        self._pool = AsyncConnectionPool(conninfo, min_size=1, max_size=self.size, open=False,
+                                         kwargs={"autocommit": True, "row_factory": namedtuple_row})
+        await self._pool.open()
+
+    async def close(self) -> None:
+        if self._pool is not None:
+            await self._pool.close()
+
+    async def all(self, stmt: Executable, **params: Any) -> Sequence[Any]:
+        """Every row of `stmt` with its bind parameters `params`."""
+        if self._pool is None:
+            return await asyncio.to_thread(self._sync, stmt, params)
+        sql = self._sql(stmt)
+        try:
+            return await self._fetch(sql, params)
+        except self._lost as exc:  # the server closed connections (a restart): drop the dead ones, ask again
+            log.warning("read retried after a lost database connection: %s", exc)
+            await self._pool.check()
+            return await self._fetch(sql, params)
+
+    async def _fetch(self, sql: str, params: dict[str, Any]) -> list[Any]:
+        async with self._pool.connection() as conn:
+            return await (await conn.execute(sql, params)).fetchall()
+
+    async def one(self, stmt: Executable, **params: Any) -> Any | None:
+        """The first row of `stmt`, or None."""
+        rows = await self.all(stmt, **params)
+        return rows[0] if rows else None
+
+    def _sql(self, stmt: Executable) -> str:
+        found = self._compiled.get(id(stmt))
+        if found is None:
+            found = self._compiled[id(stmt)] = (stmt, str(stmt.compile(dialect=self.engine.dialect)))
+        return found[1]
+
+    def _sync(self, stmt: Executable, params: dict[str, Any]) -> Sequence[Any]:
+        with self.engine.connect() as conn:
+            return conn.execute(stmt, params).all()

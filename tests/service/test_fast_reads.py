@@ -1,0 +1,117 @@
+"""The hot reads' executor (kernel/fast_reads.py): on PostgreSQL its compiled statements return what the ORM reads,
+JSON, timestamps and NULLs included, for every variant of the job list; a read survives the server dropping the
+pool's connections; and on SQLite the same statements run through SQLAlchemy."""
+from __future__ import annotations
+
+import asyncio
+from contextlib import nullcontext
+from datetime import datetime, timezone
+
+import psycopg
+import pytest
+from sqlalchemy import select
+
+from app.core.problems import Problem
+from app.jobs import reads, schemas
+from kernel.db import make_engine, make_sessionmaker, upgrade
+from kernel.fast_reads import FastReads
+from kernel.ids import new_id
+from kernel.job_state import JobStatus
+from kernel.models import Job, JobEvent, Owner
+
+from .backends import PG_ADMIN, database
+
+OWNER = "own_fast"
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def db(request, tmp_path_factory):
+    """(engine, ORM sessions, the ids of three jobs, newest last) on a migrated database of the module's own."""
+    blank = database() if request.param == "postgresql" else nullcontext(
+        f"sqlite:///{tmp_path_factory.mktemp('fast-reads') / 'jobs.db'}")
+    with blank as url:
+        upgrade(url)
+        engine = make_engine(url)
+        sessions = make_sessionmaker(engine)
+        ids = [new_id("job") for _ in range(3)]
+        with sessions.begin() as s:
+            s.add(Owner(id=OWNER, name="fast"))
+            s.flush()
+            for i, job_id in enumerate(ids):
+                s.add(Job(id=job_id, owner_id=OWNER, algorithm="drop", env="hopper", preset="smoke",
+                          overrides={"epochs": i, "sac": {"hidden": [64, 64]}}, seed=i, config={"nested": [1, 2.5]},
+                          status=("queued", "running", "succeeded")[i], attempts=i, max_attempts=3,
+                          max_runtime_s=600, progress={"epoch": i} if i else None, best_score=i and 1.5 * i,
+                          error_code="x" if i == 2 else None, error_message="boom" if i == 2 else None,
+                          started_at=datetime(2026, 1, 2, 3, 4, 5, 678000, tzinfo=timezone.utc) if i else None))
+                s.flush()
+                s.add(JobEvent(job_id=job_id, type="status", message=f"event {i}", data={"i": i}))
+        yield engine, sessions, ids
+        engine.dispose()
+
+
+def run(coroutine_fn):
+    """Run `coroutine_fn(fast_reads)` on a fresh event loop with an open executor."""
+    async def body(engine):
+        fast = FastReads(engine, 2)
+        await fast.open()
+        try:
+            return await coroutine_fn(fast)
+        finally:
+            await fast.close()
+    return body
+
+
+def test_job_matches_the_orm_read(db):
+    engine, sessions, ids = db
+    for job_id in ids:
+        with sessions() as s:
+            expected = schemas.job(s.get(Job, job_id))
+        got = asyncio.run(run(lambda fast, j=job_id: reads.job(fast, OWNER, j))(engine))
+        assert got == expected
+    assert got["started_at"] == "2026-01-02T03:04:05.678000Z" and got["error"] == {"code": "x", "message": "boom"}
+
+
+@pytest.mark.parametrize("status", [None, JobStatus.RUNNING])
+@pytest.mark.parametrize("after", [False, True])
+def test_every_job_list_variant(db, status, after):
+    engine, sessions, ids = db
+    cursor = ids[-1] if after else None
+    with sessions() as s:
+        q = select(Job).where(Job.owner_id == OWNER).order_by(Job.id.desc())
+        rows = [r for r in s.scalars(q) if (status is None or r.status == status.value)
+                and (cursor is None or r.id < cursor)]
+        expected = [schemas.job(r) for r in rows]
+    page = asyncio.run(run(lambda fast: reads.jobs_page(fast, OWNER, status, cursor, 1))(engine))
+    assert page["data"] == expected[:1] and page["has_more"] == (len(expected) > 1)
+
+
+def test_unknown_and_foreign_jobs_are_404(db):
+    engine, _, ids = db
+
+    async def body(fast):
+        for owner, job_id in (("someone_else", ids[0]), (OWNER, new_id("job")), (OWNER, "not-an-id")):
+            with pytest.raises(Problem) as caught:
+                await reads.job(fast, owner, job_id)
+            assert caught.value.status == 404
+        return await reads.events_page(fast, OWNER, ids[1], 0, 10)
+
+    events = asyncio.run(run(body)(engine))
+    assert [e["message"] for e in events["data"]] == ["event 1"] and events["data"][0]["data"] == {"i": 1}
+
+
+def test_a_read_survives_the_server_dropping_its_connections(db):
+    engine, _, ids = db
+    if engine.dialect.name != "postgresql":
+        pytest.skip("a PostgreSQL connection pool")
+
+    async def body(fast):
+        first = await reads.job(fast, OWNER, ids[0])
+        with psycopg.connect(PG_ADMIN, autocommit=True) as admin:  # what a server restart does to the pool
+            killed = admin.execute("SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+                                   "WHERE datname = %s AND pid <> pg_backend_pid()", (engine.url.database,)).fetchone()
+        assert killed[0] >= 1
+        return first, await reads.job(fast, OWNER, ids[0])
+
+    first, again = asyncio.run(run(body)(engine))
+    assert again == first
