@@ -24,7 +24,7 @@ from .datasets import routes as datasets
 from .datasets.validate import Validator
 from .jobs import outputs
 from .jobs import routes as jobs
-from .jobs.event_bus import EventWaker, listen
+from .jobs.event_bus import EventWaker, SharedReads, listen
 from .jobs.metrics import JobMetrics
 from .observability import health
 from .observability.observe import ObserveRequests
@@ -56,6 +56,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessions = make_sessionmaker(engine)
     app.state.fast_reads = FastReads(engine, settings.db_pool_size)
     app.state.events = EventWaker()
+    app.state.shared_reads = SharedReads()
     app.state.stream_slots = stream_slots(settings)
     app.state.upload_slots = upload_slots(settings)
     app.state.validator = Validator(settings)

@@ -326,7 +326,8 @@ async def upload_loop(client: httpx.AsyncClient, path: Path, stop_at: float, rec
         if record["status"] != 201:
             continue
         record["dataset_id"] = response.json()["id"]
-        check = await rec.call("GET /v1/datasets/{id}", client.get(f"/v1/datasets/{record['dataset_id']}"))
+        check = await rec.call("GET /v1/datasets/{id} (after its upload)",
+                               client.get(f"/v1/datasets/{record['dataset_id']}"))
         record["readable"] = (check is not None and check.status_code == 200
                               and check.json().get("size_bytes") == size)
         if not record["readable"]:
@@ -405,10 +406,15 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
                    ("GET /v1/jobs/{id}/events?after=", f"/v1/jobs/{job_id}/events?after={recent}"),
                    ("GET /v1/jobs", "/v1/jobs"),
                    ("GET /v1/datasets/{id}", f"/v1/datasets/{dataset_id}")]
-        began = time.monotonic()
-        stop_at = began + args.seconds
         streams = [asyncio.create_task(stream_events(client, f"/v1/jobs/{job_id}/events", rec, delays))
                    for _ in range(args.sse)]
+        connects = rec.latency["GET /v1/jobs/{id}/events (SSE connect)"]
+        for _ in range(300):  # the load starts once the streams are open: their connects are measured on their own
+            if len(connects) >= args.sse:
+                break
+            await asyncio.sleep(0.1)
+        began = time.monotonic()
+        stop_at = began + args.seconds
         pollers = asyncio.create_task(poll_with_wrk(base, token, targets, args, train.parent))
         bounded = [pollers, *(asyncio.create_task(upload_loop(client, upload, stop_at, rec, uploads))
                     for _ in range(args.uploads))]

@@ -29,6 +29,8 @@ class Settings(BaseSettings):
     auth_disabled: bool = Field(False, description="single-user local mode: every request is the 'local' owner")
     worker_threads: int | None = Field(None, ge=1, description="torch threads per job")
     worker_concurrency: int = Field(1, ge=1, description="jobs at once per `drop worker`")
+    worker_nice: int = Field(10, ge=0, le=19, description="niceness of the processes that train: batch work that "
+                             "yields the CPU to an API on the same machine (0 keeps the worker's own)")
     max_attempts: int = Field(3, ge=1)
     max_runtime_s: int = Field(24 * 3600, ge=1, description="default hard limit for one job attempt")
     heartbeat_s: float = Field(10.0, gt=0)

@@ -94,8 +94,9 @@ NEEDS = {"drop_engine": ("dependencies",), "drop_client": ("dependencies",), "dr
 # Imported, not declared: each comes with the library that pins its version (FastAPI is built on Starlette, pydantic
 # on pydantic-core).
 COMES_WITH = {"starlette": "fastapi", "pydantic_core": "pydantic"}
-# Declared, never imported: torch.onnx.export writes the policy's ONNX file with onnx.
-USED_UNIMPORTED = {"onnx"}
+# Declared, never imported: torch.onnx.export writes the policy's ONNX file with onnx; uvicorn parses HTTP with
+# httptools when it is installed.
+USED_UNIMPORTED = {"onnx", "httptools"}
 
 
 def _normal(name: str) -> str:

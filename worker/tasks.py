@@ -7,7 +7,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-from celery.signals import setup_logging, worker_ready, worker_shutdown, worker_shutting_down
+from celery.signals import setup_logging, worker_process_init, worker_ready, worker_shutdown, worker_shutting_down
 
 from kernel.db import make_engine, make_sessionmaker
 from kernel.queue import TASK_RUN_JOB, enqueue, make_celery
@@ -67,6 +67,14 @@ def _reaper_loop(slots: int) -> None:
 def _keep_our_logging(**_) -> None:
     """`drop worker` set up logging (kernel/logs.py) before Celery started; a receiver here stops Celery replacing
     it."""
+
+
+@worker_process_init.connect
+def _yield_to_the_api(**_) -> None:
+    """A pool process trains for minutes to hours at full CPU; on a machine shared with the API, requests waited
+    behind it (bench/results/service_load.md). Niced, it gets the CPU whenever nothing more urgent wants it."""
+    if settings.worker_nice:
+        os.nice(settings.worker_nice)
 
 
 @worker_ready.connect

@@ -11,11 +11,29 @@ import asyncio
 import logging
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import Awaitable, Callable, Hashable, Iterator, TypeVar
 
 log = logging.getLogger("drop.api")
 CHANNEL = "drop_job_events"
 RECONNECT_S = 2.0
+T = TypeVar("T")
+
+
+class SharedReads:
+    """Identical reads in flight at once share one. A job's streams wake together on its notification, all at the same
+    cursor, and each asked the database the same two questions: 100 streams made 200 queries per event, and the
+    polls waited behind them (bench/results/service_load.md). A stream keys its read by the notification version it
+    saw before reading, so it never joins a read that started before a notification it has already seen."""
+
+    def __init__(self) -> None:
+        self._flights: dict[Hashable, asyncio.Future] = {}
+
+    async def run(self, key: Hashable, read: Callable[[], Awaitable[T]]) -> T:
+        flight = self._flights.get(key)
+        if flight is None:
+            flight = self._flights[key] = asyncio.ensure_future(read())
+            flight.add_done_callback(lambda _: self._flights.pop(key, None))
+        return await asyncio.shield(flight)  # one waiter leaving (its client went) does not cancel the others' read
 
 
 @dataclass

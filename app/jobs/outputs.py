@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import partial
 from typing import Annotated, Callable
 
 from fastapi import APIRouter, Query, Request, Response
@@ -12,6 +13,7 @@ from starlette.background import BackgroundTask
 
 from drop_engine.plots import learning_curve
 from drop_engine.scores import Which
+from kernel.fast_reads import FastReads
 from kernel.job_state import FINAL
 
 from ..core.deps import AppSettings, DbSession, OwnerId
@@ -27,20 +29,30 @@ MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a lar
 After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
 
 
+async def _frames(fast_reads: FastReads, job_id: str, after: int) -> tuple[list[tuple[int, str]], str | None]:
+    """(event id, its SSE frame) of the events after `after`, and the job's status: made once for all the streams
+    that share the read."""
+    items, status = await reads.events_after(fast_reads, job_id, after, 500)
+    frames = [(item["id"], f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n") for item in items]
+    return frames, status
+
+
 async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
     """Events after `after` until the job ends. Each read takes a pooled connection only for its query; in between the
     stream waits for the job's next notification (PostgreSQL) or polls every SSE_POLL_S (SQLite, or listener down)."""
-    fast_reads, waker = request.app.state.fast_reads, request.app.state.events
+    state = request.app.state
+    fast_reads, waker = state.fast_reads, state.events
     try:
         with waker.subscribe(job_id) as topic:
             quiet = 0.0
             while True:
                 seen = topic.version
-                items, status = await reads.events_after(fast_reads, job_id, after, 500)
-                for item in items:
-                    after = item["id"]
-                    yield f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n"
-                if items:
+                frames, status = await state.shared_reads.run((job_id, after, seen),
+                                                              partial(_frames, fast_reads, job_id, after))
+                for _, frame in frames:
+                    yield frame
+                if frames:
+                    after = frames[-1][0]
                     quiet = 0.0
                     continue
                 if status in FINAL or status is None:

@@ -73,6 +73,16 @@ def start_worker(settings: Settings, log: Path, repo: Path = REPO) -> subprocess
     return proc
 
 
+def children(pid: int) -> list[int]:
+    """The child processes of `pid` (multiprocessing's resource tracker left out)."""
+    found = [int(c) for task in Path(f"/proc/{pid}/task").iterdir() for c in (task / "children").read_text().split()]
+    return [c for c in found if b"resource_tracker" not in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def niceness(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+
+
 def kill_group(proc: subprocess.Popen) -> None:
     """SIGKILL a worker and its pool children: a crash, with no chance to checkpoint or hand the job back."""
     try:

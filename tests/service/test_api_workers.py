@@ -11,14 +11,8 @@ from pathlib import Path
 import httpx
 
 from .datasets import tiny_npz
-from .processes import REPO, free_port, settings_env, wait_ready
+from .processes import REPO, children, free_port, settings_env, wait_ready
 from .scrapes import sample
-
-
-def children(pid: int) -> list[int]:
-    """The supervisor's API processes (not multiprocessing's resource tracker)."""
-    found = [int(c) for task in Path(f"/proc/{pid}/task").iterdir() for c in (task / "children").read_text().split()]
-    return [c for c in found if b"resource_tracker" not in Path(f"/proc/{c}/cmdline").read_bytes()]
 
 
 def test_two_api_processes_share_one_truth(own_settings, tmp_path):

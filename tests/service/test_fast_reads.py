@@ -86,18 +86,20 @@ def test_every_job_list_variant(db, status, after):
     assert page["data"] == expected[:1] and page["has_more"] == (len(expected) > 1)
 
 
-def test_unknown_and_foreign_jobs_are_404(db):
+def test_unknown_and_foreign_jobs_are_404_and_events_page(db):
     engine, _, ids = db
 
     async def body(fast):
         for owner, job_id in (("someone_else", ids[0]), (OWNER, new_id("job")), (OWNER, "not-an-id")):
-            with pytest.raises(Problem) as caught:
-                await reads.job(fast, owner, job_id)
-            assert caught.value.status == 404
-        return await reads.events_page(fast, OWNER, ids[1], 0, 10)
+            for read in (reads.job(fast, owner, job_id), reads.events_page(fast, owner, job_id, 0, 10)):
+                with pytest.raises(Problem) as caught:
+                    await read
+                assert caught.value.status == 404
+        return [await reads.events_page(fast, OWNER, ids[1], after, 10) for after in (0, 10**6)]
 
-    events = asyncio.run(run(body)(engine))
+    events, none_after = asyncio.run(run(body)(engine))
     assert [e["message"] for e in events["data"]] == ["event 1"] and events["data"][0]["data"] == {"i": 1}
+    assert none_after == {"object": "list", "data": [], "has_more": False, "next_after": None}
 
 
 def test_a_read_survives_the_server_dropping_its_connections(db):
