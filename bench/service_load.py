@@ -85,9 +85,17 @@ def make_files(folder: Path, upload_mb: float) -> tuple[Path, Path]:
 
 
 # ------------------------------------------------------------------------------------------------ the service
-def api_command(repo: Path, port: int, workers: int) -> list[str]:
+# `drop api` with the request observation (request id, HTTP metrics, access line) taken out: the ceiling's baseline
+# for what observing costs. One process only: uvicorn then serves in the process that patched the app.
+UNOBSERVED_NAME = "this code, no request observation"
+UNOBSERVED = ("import sys, app.main; app.main.ObserveRequests = lambda inner: inner; sys.argv[0] = 'drop'; "
+              "from app.cli import main; main()")
+
+
+def api_command(repo: Path, port: int, workers: int, observed: bool = True) -> list[str]:
     """`drop api` from `repo`; a checkout from before `--workers` existed runs one process anyway."""
-    command = [sys.executable, "-m", "app.cli", "api", "--host", "127.0.0.1", "--port", str(port)]
+    start = ["-m", "app.cli"] if observed else ["-c", UNOBSERVED]
+    command = [sys.executable, *start, "api", "--host", "127.0.0.1", "--port", str(port)]
     return command + (["--workers", str(workers)] if repo == REPO else [])
 
 
@@ -135,9 +143,10 @@ def drop_queue(queue: str) -> None:
 
 
 @contextmanager
-def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) -> Iterator[tuple[str, str, str]]:
-    """(API url, token, a job's path) of a `drop api` from `repo` with no worker at all, on a database of its own
-    holding one queued job: the API's own ceiling, nothing else running."""
+def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int,
+             observed: bool = True) -> Iterator[tuple[str, str, str, int]]:
+    """(API url, token, a job's path, the API's pid) of a `drop api` from `repo` with no worker at all, on a database
+    of its own holding one queued job: the API's own ceiling, nothing else running."""
     from tests.service.datasets import tiny_npz
 
     folder.mkdir(parents=True)
@@ -152,7 +161,7 @@ def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) 
                                    check=True, capture_output=True, text=True).stdout.strip()
             port = free_port()
             with (folder / "api.log").open("ab") as out:
-                api = subprocess.Popen(api_command(repo, port, workers), cwd=repo, env=env, stdout=out,
+                api = subprocess.Popen(api_command(repo, port, workers, observed), cwd=repo, env=env, stdout=out,
                                        stderr=subprocess.STDOUT, start_new_session=True)
             try:
                 base = f"http://127.0.0.1:{port}"
@@ -160,19 +169,32 @@ def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int) 
                     wait_ready(http, api, folder / "api.log", 120)  # a quiet variant logs no startup line
                     ds = http.post("/v1/datasets", content=tiny_npz(0)).raise_for_status().json()
                     job = http.post("/v1/jobs", json={"dataset_id": ds["id"], "env": "hopper", "preset": "smoke"})
-                yield base, token, f"/v1/jobs/{job.raise_for_status().json()['id']}"
+                yield base, token, f"/v1/jobs/{job.raise_for_status().json()['id']}", api.pid
             finally:
                 kill_group(api)
         finally:
             drop_queue(settings.queue)
 
 
-def wrk(url: str, token: str, seconds: float, connections: int = 16) -> tuple[float, int]:
-    """(requests per second, answers other than 2xx) of wrk's closed loop on one URL."""
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time so far of a process and its live descendants (`--workers N`'s API processes)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    own = sum(int(f) for f in fields[11:13]) / os.sysconf("SC_CLK_TCK")
+    kids = [int(c) for task in Path(f"/proc/{pid}/task").iterdir() for c in (task / "children").read_text().split()]
+    return own + sum(cpu_seconds(kid) for kid in kids)
+
+
+def wrk(url: str, token: str, seconds: float, pid: int, connections: int = 16) -> tuple[float, int, float]:
+    """(requests per second, answers other than 2xx, the API's CPU µs per request) of wrk's closed loop on one URL.
+    CPU per request varies far less than throughput on a noisy machine, so it tells small costs apart."""
+    cpu = cpu_seconds(pid)
     out = subprocess.run(["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "-H", f"Authorization: Bearer {token}",
                           url], check=True, capture_output=True, text=True).stdout
+    cpu = cpu_seconds(pid) - cpu
     bad = re.search(r"Non-2xx or 3xx responses: (\d+)", out)
-    return float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1)), int(bad.group(1)) if bad else 0
+    requests = int(re.search(r"(\d+) requests in", out).group(1))
+    return (float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1)), int(bad.group(1)) if bad else 0,
+            1e6 * cpu / max(requests, 1))
 
 
 def ceiling(args, folder: Path) -> dict:
@@ -182,24 +204,28 @@ def ceiling(args, folder: Path) -> dict:
     machine's drift falls on all of them alike."""
     if shutil.which("wrk") is None:
         raise SystemExit("the ceiling needs wrk (apt-get install wrk), or --ceiling-rounds 0")
-    variants = [("this code", REPO, {}), ("this code, access log off", REPO, {"DROP_LOG_LEVEL": "WARNING"})]
+    variants = [("this code", REPO, {}, True), ("this code, access log off", REPO, {"DROP_LOG_LEVEL": "WARNING"}, True)]
+    if args.api_workers == 1:
+        variants.append((UNOBSERVED_NAME, REPO, {}, False))
     if args.before_repo:
-        variants.append(("before", args.before_repo, {}))
+        variants.append(("before", args.before_repo, {}, True))
     with ExitStack() as stack:
         targets = []
-        for i, (name, repo, extra) in enumerate(variants):
-            base, token, job = stack.enter_context(idle_api(folder / f"ceiling-{i}", repo, extra, args.api_workers))
-            targets += [(name, "GET /healthz", base + "/healthz", token),
-                        (name, "GET /v1/jobs/{id}", base + job, token)]
-        runs: dict[tuple[str, str], list[tuple[float, int]]] = defaultdict(list)
+        for i, (name, repo, extra, observed) in enumerate(variants):
+            base, token, job, pid = stack.enter_context(idle_api(folder / f"ceiling-{i}", repo, extra,
+                                                                 args.api_workers, observed))
+            targets += [(name, "GET /healthz", base + "/healthz", token, pid),
+                        (name, "GET /v1/jobs/{id}", base + job, token, pid)]
+        runs: dict[tuple[str, str], list[tuple[float, int, float]]] = defaultdict(list)
         for r in range(args.ceiling_rounds):
             print(f"  ceiling round {r + 1}/{args.ceiling_rounds}", flush=True)
-            for name, endpoint, url, token in targets:
-                runs[(name, endpoint)].append(wrk(url, token, args.ceiling_round_s))
-    table = {name: {endpoint: {"rps": round(float(np.median([r for r, _ in runs[(name, endpoint)]])), 1),
-                               "rounds": [r for r, _ in runs[(name, endpoint)]],
-                               "errors": sum(e for _, e in runs[(name, endpoint)])}
-                    for endpoint in ("GET /healthz", "GET /v1/jobs/{id}")} for name, _, _ in variants}
+            for name, endpoint, url, token, pid in targets:
+                runs[(name, endpoint)].append(wrk(url, token, args.ceiling_round_s, pid))
+    table = {name: {endpoint: {"rps": round(float(np.median([r[0] for r in runs[(name, endpoint)]])), 1),
+                               "cpu_us": round(float(np.median([r[2] for r in runs[(name, endpoint)]])), 1),
+                               "rounds": runs[(name, endpoint)],
+                               "errors": sum(r[1] for r in runs[(name, endpoint)])}
+                    for endpoint in ("GET /healthz", "GET /v1/jobs/{id}")} for name, *_ in variants}
     for row in table.values():
         row["job_share_of_healthz"] = round(row["GET /v1/jobs/{id}"]["rps"] / row["GET /healthz"]["rps"], 3)
     return {"api_workers": args.api_workers, "rounds": args.ceiling_rounds, "round_s": args.ceiling_round_s,
@@ -492,18 +518,28 @@ def ceiling_markdown(c: dict) -> list[str]:
     lines = [f"## Ceiling: the API alone, no worker ({c['api_workers']} API process(es), wrk with {c['connections']} "
              f"connections, the median of {c['rounds']} alternating rounds of {c['round_s']:g} s)", "",
              "| service | `GET /healthz` req/s | `GET /v1/jobs/{id}` req/s (auth, PostgreSQL) | share of healthz | "
-             "errors |", "|---|---|---|---|---|"]
+             "API CPU µs per healthz | per job read | errors |", "|---|---|---|---|---|---|---|"]
     for name, row in c["variants"].items():
         health, job = row["GET /healthz"], row["GET /v1/jobs/{id}"]
         lines.append(f"| {name} | {health['rps']} | {job['rps']} | {row['job_share_of_healthz']:.0%} | "
-                     f"{health['errors'] + job['errors']} |")
-    table = c["variants"]
-    quiet, here = table.get("this code, access log off"), table["this code"]
-    if quiet:
-        lines += ["", f"The access log line costs {1 - here['GET /healthz']['rps'] / quiet['GET /healthz']['rps']:.1%} "
-                  "of the healthz ceiling (this code against itself with DROP_LOG_LEVEL=WARNING)."]
+                     f"{health['cpu_us']} | {job['cpu_us']} | {health['errors'] + job['errors']} |")
+    table, here = c["variants"], c["variants"]["this code"]
+
+    def cost(base: dict, what: str) -> str:
+        """What `here` spends beyond `base`, as a share of its throughput and of its CPU per request."""
+        return "; ".join(f"{e.split()[1]}: {1 - here[e]['rps'] / base[e]['rps']:.1%} of the throughput, "
+                         f"{1 - base[e]['cpu_us'] / here[e]['cpu_us']:.1%} of the API's CPU per request"
+                         for e in ("GET /healthz", "GET /v1/jobs/{id}")) + f" ({what})."
+
+    lines.append("")
+    if "this code, access log off" in table:
+        lines.append("The access log line costs " + cost(table["this code, access log off"],
+                                                         "this code against itself with DROP_LOG_LEVEL=WARNING"))
+    if UNOBSERVED_NAME in table:
+        lines.append("Observing requests (request id, HTTP metrics, access line) costs " + cost(
+            table[UNOBSERVED_NAME], "this code against itself with the observing middleware taken out"))
     if "before" in table:
-        lines.append(f"Against the code before (no request ids, metrics or JSON logs), healthz runs at "
+        lines.append(f"Against the code before, healthz runs at "
                      f"{here['GET /healthz']['rps'] / table['before']['GET /healthz']['rps']:.0%} and the job read at "
                      f"{here['GET /v1/jobs/{id}']['rps'] / table['before']['GET /v1/jobs/{id}']['rps']:.0%}.")
     return lines

@@ -5,7 +5,6 @@ bound to every log line written while the request is handled, so a client's repo
 """
 from __future__ import annotations
 
-import logging
 import re
 import time
 import uuid
@@ -13,13 +12,14 @@ import uuid
 import structlog
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from kernel import logs
+
 from .metrics import HTTP_LATENCY, HTTP_REQUESTS
 
 HEADER = b"x-request-id"
 SANE_ID = re.compile(rb"^[A-Za-z0-9._:-]{1,128}$")
 METHODS = frozenset(("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"))
 UNMATCHED = "unmatched"  # any path no route serves: one label, however many paths are probed
-access = logging.getLogger("drop.access")
 
 
 def request_id(scope: Scope) -> str:
@@ -72,5 +72,4 @@ class ObserveRequests:
                 count, latency = self._series(method, route_template(scope), status)
                 count.inc()
                 latency.observe(seconds)
-                access.info("request", extra={"method": method, "path": scope["path"], "status": status,
-                                              "ms": round(seconds * 1000, 1)})
+                logs.access_line(method, scope["path"], status, round(seconds * 1000, 1))

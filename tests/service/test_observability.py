@@ -76,17 +76,32 @@ def test_metrics_move_during_a_smoke_job(served, hopper_file):
 @pytest.fixture
 def json_logs():
     """JSON log lines, as `drop api` writes them to stderr, captured here; logging is restored afterwards."""
-    from kernel.logs import configure
+    from kernel import logs
 
     root = logging.getLogger()
-    saved = root.handlers[:], root.level
-    configure("json", "INFO")
+    saved = root.handlers[:], root.level, logs.access_line
+    logs.configure("json", "INFO")
     out = io.StringIO()
     root.handlers[0].setStream(out)
     try:
         yield lambda: [json.loads(line) for line in out.getvalue().splitlines()]
     finally:
-        root.handlers, root.level = saved
+        root.handlers, root.level, logs.access_line = saved
+
+
+def test_the_written_access_line_is_the_logged_one(json_logs):
+    """The access line skips the logging module (kernel/logs.py); what it writes is what a record would have."""
+    import structlog
+
+    from kernel import logs
+
+    assert logs.access_line is not logs._access_through_logging
+    with structlog.contextvars.bound_contextvars(request_id="r-1", job_id="job_1"):
+        logs.access_line("GET", "/v1/jobs/ünï", 404, 1.5)
+        logs._access_through_logging("GET", "/v1/jobs/ünï", 404, 1.5)
+    written, logged = json_logs()
+    assert written.pop("timestamp")[:16] == logged.pop("timestamp")[:16]
+    assert written == logged and written["request_id"] == "r-1" and written["path"] == "/v1/jobs/ünï"
 
 
 def test_request_id_round_trip_and_on_log_lines(client, alice, json_logs):
