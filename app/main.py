@@ -10,7 +10,7 @@ from fastapi import FastAPI
 
 from kernel.db import make_engine, make_sessionmaker, schema_problem
 from kernel.fast_reads import FastReads
-from kernel.logs import configure
+from kernel.logs import configure, flush_access
 from kernel.queue import enqueue, make_celery
 from kernel.settings import Settings, get_settings
 
@@ -98,3 +98,4 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             with suppress(asyncio.CancelledError):
                 await listener
         await fast_reads.close()
+        flush_access()

@@ -5,9 +5,11 @@ bound to every log line written while the request is handled, so a client's repo
 """
 from __future__ import annotations
 
+import itertools
+import os
 import re
+import secrets
 import time
-import uuid
 
 import structlog
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -22,11 +24,25 @@ METHODS = frozenset(("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 UNMATCHED = "unmatched"  # any path no route serves: one label, however many paths are probed
 
 
-def request_id(scope: Scope) -> str:
+class RequestIds:
+    """New request ids: 64 random bits drawn once per process, then a counter. Unique across processes and restarts
+    as uuid4's are, without uuid4's random-number syscall per request (5-7 µs here, on a 190 µs /healthz)."""
+
+    def __init__(self) -> None:
+        self._prefix, self._count = secrets.token_hex(8), itertools.count()
+        self._pid = os.getpid()
+
+    def new(self) -> str:
+        if os.getpid() != self._pid:  # a forked process must not repeat its parent's ids
+            self.__init__()
+        return f"{self._prefix}{next(self._count):016x}"
+
+
+def request_id(scope: Scope, ids: RequestIds) -> str:
     for name, value in scope["headers"]:
         if name == HEADER and SANE_ID.match(value):
             return value.decode()
-    return uuid.uuid4().hex
+    return ids.new()
 
 
 def route_template(scope: Scope) -> str:
@@ -37,6 +53,7 @@ def route_template(scope: Scope) -> str:
 class ObserveRequests:
     def __init__(self, app: ASGIApp):
         self.app = app
+        self._ids = RequestIds()
         self._children: dict[tuple[str, str, int], tuple] = {}
 
     def _series(self, method: str, route: str, status: int) -> tuple:
@@ -52,7 +69,7 @@ class ObserveRequests:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        rid = request_id(scope)
+        rid = request_id(scope, self._ids)
         start = time.perf_counter()
         answered: dict = {}
 

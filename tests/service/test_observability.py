@@ -83,8 +83,12 @@ def json_logs():
     logs.configure("json", "INFO")
     out = io.StringIO()
     root.handlers[0].setStream(out)
+    def lines() -> list[dict]:
+        logs.flush_access()  # access lines wait up to ACCESS_FLUSH_S
+        return [json.loads(line) for line in out.getvalue().splitlines()]
+
     try:
-        yield lambda: [json.loads(line) for line in out.getvalue().splitlines()]
+        yield lines
     finally:
         root.handlers, root.level, logs.access_line = saved
 
@@ -119,3 +123,23 @@ def test_request_id_round_trip_and_on_log_lines(client, alice, json_logs):
     assert access["trace-42.a"]["status"] == 200 and access["trace-42.a"]["path"] == "/v1/jobs"
     assert access["trace-43"]["status"] == 404 and access[fresh]["path"] == "/healthz"
     assert {"timestamp", "level", "ms", "method"} <= access["trace-42.a"].keys()
+
+
+def test_access_lines_go_out_together_within_the_flush_interval(json_logs):
+    """On the event loop, access lines wait up to ACCESS_FLUSH_S and are then written in one go."""
+    import asyncio
+
+    from kernel import logs
+
+    stream = logging.getLogger().handlers[0].stream
+
+    async def serve() -> tuple[str, str]:
+        for n in range(3):
+            logs.access_line("GET", f"/r{n}", 200, 0.1)
+        before = stream.getvalue()
+        await asyncio.sleep(logs.ACCESS_FLUSH_S + 0.2)
+        return before, stream.getvalue()
+
+    before, after = asyncio.run(serve())
+    assert before == "" and [line["path"] for line in json_logs()] == ["/r0", "/r1", "/r2"]
+    assert after.count("\n") == 3
