@@ -614,6 +614,8 @@ def main() -> int:
     parser.add_argument("--note", default="", help="a sentence about the machine for the markdown (background load)")
     parser.add_argument("--out", type=Path, default=REPO / "bench/results")
     args = parser.parse_args()
+    if args.clients < 4:
+        parser.error("--clients must be at least 4: one wrk connection per polled endpoint")
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C or a kill cleans up, even when started in the background
         signal.signal(sig, signal.default_int_handler)
 

@@ -20,6 +20,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.sql import Executable
 
 log = logging.getLogger("drop.api")
+POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (500) rather than queueing without end
 
 
 class FastReads:
@@ -31,6 +32,7 @@ class FastReads:
         self._compiled: dict[int, tuple[Executable, str]] = {}  # id -> (the statement, kept alive; its SQL)
         self._pool = None
         self._lost: tuple[type[Exception], ...] = ()
+        self._pool_errors: tuple[type[Exception], ...] = ()
 
     @property
     def on_postgresql(self) -> bool:
@@ -41,17 +43,18 @@ class FastReads:
             return
         from psycopg import OperationalError
         from psycopg.rows import namedtuple_row
-        from psycopg_pool import AsyncConnectionPool
+        from psycopg_pool import AsyncConnectionPool, PoolClosed, PoolTimeout, TooManyRequests
 
-        self._lost = (OperationalError,)
+        self._lost, self._pool_errors = (OperationalError,), (PoolClosed, PoolTimeout, TooManyRequests)
         conninfo = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
-        self._pool = AsyncConnectionPool(conninfo, min_size=1, max_size=self.size, open=False,
+        self._pool = AsyncConnectionPool(conninfo, min_size=1, max_size=self.size, open=False, timeout=POOL_WAIT_S,
                                          kwargs={"autocommit": True, "row_factory": namedtuple_row})
         await self._pool.open()
 
     async def close(self) -> None:
         if self._pool is not None:
-            await self._pool.close()
+            pool, self._pool = self._pool, None
+            await pool.close()
 
     async def all(self, stmt: Executable, **params: Any) -> Sequence[Any]:
         """Every row of `stmt` with its bind parameters `params`."""
@@ -61,6 +64,8 @@ class FastReads:
         try:
             return await self._fetch(sql, params)
         except self._lost as exc:  # the server closed connections (a restart): drop the dead ones, ask again
+            if isinstance(exc, self._pool_errors):  # a full or closed pool is not a lost connection
+                raise
             log.warning("read retried after a lost database connection: %s", exc)
             await self._pool.check()
             return await self._fetch(sql, params)
@@ -77,7 +82,12 @@ class FastReads:
     def _sql(self, stmt: Executable) -> str:
         found = self._compiled.get(id(stmt))
         if found is None:
-            found = self._compiled[id(stmt)] = (stmt, str(stmt.compile(dialect=self.engine.dialect)))
+            compiled = stmt.compile(dialect=self.engine.dialect)
+            # Only named bind parameters, all given per call: a literal or an IN list would need values compiled in.
+            if compiled.params.keys() - {b.key for b in compiled.binds.values() if b.value is None} or \
+                    "POSTCOMPILE" in str(compiled):
+                raise ValueError(f"a fast read takes named bindparams only: {compiled}")
+            found = self._compiled[id(stmt)] = (stmt, str(compiled))
         return found[1]
 
     def _sync(self, stmt: Executable, params: dict[str, Any]) -> Sequence[Any]:

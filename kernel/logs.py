@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import select
 import threading
 import time
 from datetime import datetime, timezone
@@ -64,7 +65,7 @@ class AccessWriter:
     killed process loses them."""
 
     def __init__(self, handler: logging.StreamHandler):
-        self.handler, self._pending = handler, []
+        self.handler, self._pending, self._timer = handler, [], None
         self._encode = json.JSONEncoder(ensure_ascii=True, default=repr).encode
 
     def __call__(self, method: str, path: str, status: int, ms: float) -> None:
@@ -73,21 +74,35 @@ class AccessWriter:
                 "timestamp": datetime.now(timezone.utc).isoformat().replace("+00:00", "Z")}
         with self.handler.lock:
             self._pending.append(self._encode(line) + "\n")
-            first, full = len(self._pending) == 1, len(self._pending) >= ACCESS_BATCH
-        if full:
+            full = len(self._pending) >= ACCESS_BATCH
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no event loop here to flush later: now
+            loop = None
+        if full or loop is None:
             self.flush()
-        elif first:
-            try:
-                asyncio.get_running_loop().call_later(ACCESS_FLUSH_S, self.flush)
-            except RuntimeError:  # no event loop here to flush later: now
-                self.flush()
+        elif self._timer is None or loop.time() > self._timer.when() + ACCESS_FLUSH_S:  # or one whose loop is gone
+            self._timer = loop.call_later(ACCESS_FLUSH_S, self.flush)
 
     def flush(self) -> None:
+        """Write what waits, in writes of at most PIPE_BUF bytes of whole lines: a pipe shared by several API
+        processes keeps each such write whole, so their lines never splice."""
         with self.handler.lock:
-            if self._pending:
-                self.handler.stream.write("".join(self._pending))
+            pending, self._pending, self._timer = self._pending, [], None
+            chunk: list[str] = []
+            size = 0
+            try:
+                for line in pending:
+                    if chunk and size + len(line) > select.PIPE_BUF:
+                        self.handler.stream.write("".join(chunk))
+                        chunk, size = [], 0
+                    chunk.append(line)
+                    size += len(line)
+                if chunk:
+                    self.handler.stream.write("".join(chunk))
                 self.handler.stream.flush()
-                self._pending.clear()
+            except Exception:  # as StreamHandler.emit: report it, never fail the request that logged
+                self.handler.handleError(logging.makeLogRecord({"msg": "access lines", "name": ACCESS_LOGGER}))
 
 
 # The API's line per request (app/observability/observe.py); configure() makes it an AccessWriter for JSON logs.

@@ -61,7 +61,7 @@ class Settings(BaseSettings):
                                                     "default under `drop serve`)")
     log_level: str = Field("INFO", pattern=r"^(?i:debug|info|warning|error|critical)$")
     max_streams_per_owner: int = Field(20, ge=1, description="open event streams per owner per API process; 429 past")
-    db_pool_size: int = Field(10, ge=1, le=200, description="PostgreSQL connections of each API process's pool for "
+    db_pool_size: int = Field(5, ge=1, le=200, description="PostgreSQL connections of each API process's pool for "
                               "its hot reads (job, jobs, events, dataset); each API process holds up to this many "
                               "beside its ORM pool (5 + 10 overflow) and its event listener")
     token_cache_s: float = Field(5.0, ge=0, le=60, description="how long an API process trusts a token lookup: a "

@@ -8,6 +8,7 @@ at the fast interval whenever the listener is down or the database is SQLite, wh
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
@@ -17,13 +18,15 @@ log = logging.getLogger("drop.api")
 CHANNEL = "drop_job_events"
 RECONNECT_S = 2.0
 T = TypeVar("T")
+_serials = itertools.count()
 
 
 class SharedReads:
     """Identical reads in flight at once share one. A job's streams wake together on its notification, all at the same
     cursor, and each asked the database the same two questions: 100 streams made 200 queries per event, and the
     polls waited behind them (bench/results/service_load.md). A stream keys its read by the notification version it
-    saw before reading, so it never joins a read that started before a notification it has already seen."""
+    saw before reading (and its topic's serial), so it never joins a read that started before a notification it has
+    already seen."""
 
     def __init__(self) -> None:
         self._flights: dict[Hashable, asyncio.Future] = {}
@@ -32,8 +35,13 @@ class SharedReads:
         flight = self._flights.get(key)
         if flight is None:
             flight = self._flights[key] = asyncio.ensure_future(read())
-            flight.add_done_callback(lambda _: self._flights.pop(key, None))
+            flight.add_done_callback(lambda done: self._landed(key, done))
         return await asyncio.shield(flight)  # one waiter leaving (its client went) does not cancel the others' read
+
+    def _landed(self, key: Hashable, flight: asyncio.Future) -> None:
+        self._flights.pop(key, None)
+        if not flight.cancelled():
+            flight.exception()  # retrieved: a read whose waiters all left fails quietly, as theirs would have
 
 
 @dataclass
@@ -43,6 +51,8 @@ class Topic:
     version: int = 0
     event: asyncio.Event = field(default_factory=asyncio.Event)
     refs: int = 0
+    # Topics come and go with their streams, and a new one's version starts again at 0: reads are keyed by both.
+    serial: int = field(default_factory=lambda: next(_serials))
 
 
 class EventWaker:

@@ -47,7 +47,7 @@ async def _stream(request: Request, job_id: str, after: int, release: Callable[[
             quiet = 0.0
             while True:
                 seen = topic.version
-                frames, status = await state.shared_reads.run((job_id, after, seen),
+                frames, status = await state.shared_reads.run((job_id, after, topic.serial, seen),
                                                               partial(_frames, fast_reads, job_id, after))
                 for _, frame in frames:
                     yield frame

@@ -13,5 +13,5 @@ def test_pool_processes_are_niced(worker, settings):
     while not (pool := children(worker.pid)) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert pool, "the worker has no pool process"
-    assert niceness(worker.pid) == 0
-    assert [niceness(pid) for pid in pool] == [settings.worker_nice] * len(pool)
+    own = niceness(worker.pid)  # the test run's own, which the worker inherited
+    assert [niceness(pid) for pid in pool] == [min(19, own + settings.worker_nice)] * len(pool)
