@@ -29,19 +29,27 @@ class SharedReads:
     already seen."""
 
     def __init__(self) -> None:
-        self._flights: dict[Hashable, asyncio.Future] = {}
+        self._flights: dict[Hashable, list] = {}  # key -> [the read's task, how many wait for it]
 
     async def run(self, key: Hashable, read: Callable[[], Awaitable[T]]) -> T:
         flight = self._flights.get(key)
         if flight is None:
-            flight = self._flights[key] = asyncio.ensure_future(read())
-            flight.add_done_callback(lambda done: self._landed(key, done))
-        return await asyncio.shield(flight)  # one waiter leaving (its client went) does not cancel the others' read
+            task = asyncio.ensure_future(read())
+            flight = self._flights[key] = [task, 0]
+            task.add_done_callback(lambda done: self._landed(key, done))
+        flight[1] += 1
+        try:
+            return await asyncio.shield(flight[0])  # one waiter leaving (its client went) leaves the others' read
+        finally:
+            flight[1] -= 1
+            if not flight[1] and not flight[0].done():  # the last one left: nobody needs the read
+                flight[0].cancel()
 
-    def _landed(self, key: Hashable, flight: asyncio.Future) -> None:
-        self._flights.pop(key, None)
-        if not flight.cancelled():
-            flight.exception()  # retrieved: a read whose waiters all left fails quietly, as theirs would have
+    def _landed(self, key: Hashable, task: asyncio.Future) -> None:
+        if self._flights.get(key, [None])[0] is task:
+            del self._flights[key]
+        if not task.cancelled():
+            task.exception()  # retrieved here: each waiter got it already
 
 
 @dataclass

@@ -41,6 +41,22 @@ def test_concurrent_identical_reads_share_one_query():
     asyncio.run(body())
 
 
+def test_a_read_nobody_waits_for_is_cancelled():
+    """Every stream left (their clients went): the read stops too, rather than outliving them and their loop."""
+    async def body():
+        shared, db = SharedReads(), Database()
+        waiters = [asyncio.create_task(shared.run("k", lambda: db.read("a"))) for _ in range(2)]
+        await asyncio.sleep(0)
+        flight = next(iter(shared._flights.values()))[0]
+        for waiter in waiters:
+            waiter.cancel()
+        await asyncio.gather(*waiters, return_exceptions=True)
+        await asyncio.sleep(0)
+        assert flight.cancelled() and not shared._flights
+
+    asyncio.run(body())
+
+
 def test_an_error_reaches_every_waiter():
     async def body():
         shared, db = SharedReads(), Database()
