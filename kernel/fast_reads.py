@@ -31,6 +31,7 @@ class FastReads:
         self.size = size
         self._compiled: dict[int, tuple[Executable, str]] = {}  # id -> (the statement, kept alive; its SQL)
         self._pool = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._lost: tuple[type[Exception], ...] = ()
         self._pool_errors: tuple[type[Exception], ...] = ()
 
@@ -39,26 +40,30 @@ class FastReads:
         return self.engine.dialect.name == "postgresql"
 
     async def open(self) -> None:
-        if not self.on_postgresql:
+        """Open the pool on this event loop. A pool serves only the loop that opened it: another lifespan of the same
+        app (tests run several clients, each with a loop of its own, on one app) leaves it as it is, and reads from
+        any other loop take the threadpool path."""
+        if not self.on_postgresql or self._pool is not None:
             return
         from psycopg import OperationalError
         from psycopg.rows import namedtuple_row
         from psycopg_pool import AsyncConnectionPool, PoolClosed, PoolTimeout, TooManyRequests
 
         self._lost, self._pool_errors = (OperationalError,), (PoolClosed, PoolTimeout, TooManyRequests)
+        self._loop = asyncio.get_running_loop()
         conninfo = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
         self._pool = AsyncConnectionPool(conninfo, min_size=1, max_size=self.size, open=False, timeout=POOL_WAIT_S,
                                          kwargs={"autocommit": True, "row_factory": namedtuple_row})
         await self._pool.open()
 
     async def close(self) -> None:
-        if self._pool is not None:
+        if self._pool is not None and asyncio.get_running_loop() is self._loop:
             pool, self._pool = self._pool, None
             await pool.close()
 
     async def all(self, stmt: Executable, **params: Any) -> Sequence[Any]:
         """Every row of `stmt` with its bind parameters `params`."""
-        if self._pool is None:
+        if self._pool is None or asyncio.get_running_loop() is not self._loop:
             return await asyncio.to_thread(self._sync, stmt, params)
         sql = self._sql(stmt)
         try:

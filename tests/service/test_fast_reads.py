@@ -117,3 +117,29 @@ def test_a_read_survives_the_server_dropping_its_connections(db):
 
     first, again = asyncio.run(run(body)(engine))
     assert again == first
+
+
+def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
+    """Two lifespans of one app (two test clients, each with its own loop): the pool stays the first loop's, the
+    second reads through the threadpool, and only the first one's close closes it."""
+    engine, _, ids = db
+    fast = FastReads(engine, 2)
+
+    async def first_open():
+        await fast.open()
+        return fast._pool
+
+    other = asyncio.new_event_loop()
+    try:
+        pool = other.run_until_complete(first_open())
+        assert asyncio.run(reads.job(fast, OWNER, ids[0]))["id"] == ids[0]  # another loop: no cross-loop pool use
+
+        async def second_lifespan():
+            await fast.open()
+            await fast.close()
+        asyncio.run(second_lifespan())
+        assert fast._pool is pool
+        other.run_until_complete(fast.close())
+        assert fast._pool is None and (pool is None or pool.closed)
+    finally:
+        other.close()
