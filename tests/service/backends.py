@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import secrets
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
 from typing import Iterator
 
 import psycopg
@@ -22,3 +23,21 @@ def database() -> Iterator[str]:
     finally:
         with psycopg.connect(PG_ADMIN, autocommit=True) as conn:
             conn.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+
+
+@contextmanager
+def migrated_engine(kind: str, folder: Path, owner: str):
+    """An engine on a new migrated database, `kind` "sqlite" (a file in `folder`) or "postgresql", holding the owner
+    `owner`, and nothing else: no worker's reaper sends its jobs. Disposed of afterwards."""
+    from kernel.db import make_engine, make_sessionmaker, upgrade
+    from kernel.models import Owner
+
+    with database() if kind == "postgresql" else nullcontext(f"sqlite:///{folder / 'jobs.db'}") as url:
+        upgrade(url)
+        engine = make_engine(url)
+        with make_sessionmaker(engine).begin() as s:
+            s.add(Owner(id=owner, name=owner))
+        try:
+            yield engine
+        finally:
+            engine.dispose()

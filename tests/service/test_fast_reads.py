@@ -4,7 +4,6 @@ pool's connections; and on SQLite the same statements run through SQLAlchemy."""
 from __future__ import annotations
 
 import asyncio
-from contextlib import nullcontext
 from datetime import datetime, timezone
 
 import psycopg
@@ -13,13 +12,13 @@ from sqlalchemy import select
 
 from app.core.problems import Problem
 from app.jobs import reads, schemas
-from kernel.db import make_engine, make_sessionmaker, upgrade
+from kernel.db import make_sessionmaker
 from kernel.fast_reads import FastReads
 from kernel.ids import new_id
 from kernel.job_state import JobStatus
-from kernel.models import Job, JobEvent, Owner
+from kernel.models import Job, JobEvent
 
-from .backends import PG_ADMIN, database
+from .backends import PG_ADMIN, migrated_engine
 
 OWNER = "own_fast"
 
@@ -27,16 +26,10 @@ OWNER = "own_fast"
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
 def db(request, tmp_path_factory):
     """(engine, ORM sessions, the ids of three jobs, newest last) on a migrated database of the module's own."""
-    blank = database() if request.param == "postgresql" else nullcontext(
-        f"sqlite:///{tmp_path_factory.mktemp('fast-reads') / 'jobs.db'}")
-    with blank as url:
-        upgrade(url)
-        engine = make_engine(url)
+    with migrated_engine(request.param, tmp_path_factory.mktemp("fast-reads"), OWNER) as engine:
         sessions = make_sessionmaker(engine)
         ids = [new_id("job") for _ in range(3)]
         with sessions.begin() as s:
-            s.add(Owner(id=OWNER, name="fast"))
-            s.flush()
             for i, job_id in enumerate(ids):
                 s.add(Job(id=job_id, owner_id=OWNER, algorithm="drop", env="hopper", preset="smoke",
                           overrides={"epochs": i, "sac": {"hidden": [64, 64]}}, seed=i, config={"nested": [1, 2.5]},
@@ -47,7 +40,6 @@ def db(request, tmp_path_factory):
                 s.flush()
                 s.add(JobEvent(job_id=job_id, type="status", message=f"event {i}", data={"i": i}))
         yield engine, sessions, ids
-        engine.dispose()
 
 
 def run(coroutine_fn):

@@ -4,17 +4,16 @@ the writer names the forbidden source); and a worker's moves happen only while t
 from __future__ import annotations
 
 import itertools
-from contextlib import nullcontext
 
 import pytest
 from sqlalchemy import select
 
-from kernel.db import make_engine, make_sessionmaker, upgrade
+from kernel.db import make_sessionmaker
 from kernel.ids import new_id
 from kernel.job_state import ATTEMPT, TRANSITIONS, ForbiddenTransition, JobStatus, transition
-from kernel.models import Job, JobEvent, Owner
+from kernel.models import Job, JobEvent
 
-from .backends import database
+from .backends import migrated_engine
 
 PAIRS = list(itertools.product(JobStatus, JobStatus))
 ALLOWED = [(a, b) for a, b in PAIRS if b in TRANSITIONS[a]]
@@ -24,16 +23,8 @@ OWNER = "own_states"
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
 def sessions(request, tmp_path_factory):
     """A migrated database of the module's own: no worker's reaper sends its queued jobs."""
-    blank = database() if request.param == "postgresql" else nullcontext(
-        f"sqlite:///{tmp_path_factory.mktemp('job-state') / 'jobs.db'}")
-    with blank as url:
-        upgrade(url)
-        engine = make_engine(url)
-        factory = make_sessionmaker(engine)
-        with factory.begin() as s:
-            s.add(Owner(id=OWNER, name="states"))
-        yield factory
-        engine.dispose()
+    with migrated_engine(request.param, tmp_path_factory.mktemp("job-state"), OWNER) as engine:
+        yield make_sessionmaker(engine)
 
 
 def _job(sessions, status: JobStatus, attempts: int = 1) -> str:
