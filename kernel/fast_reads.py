@@ -2,8 +2,8 @@
 awaited on the event loop.
 
 A read through a pooled ORM session in the threadpool cost about 520 µs of the API's time on PostgreSQL, the same
-query through psycopg's async pool 180 µs, each timed in a loop (bench/NOTES.md). So on PostgreSQL each statement is compiled
-once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round trip. On
+query through psycopg's async pool 180 µs, each timed in a loop (bench/NOTES.md). So on PostgreSQL each statement is
+compiled once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round trip. On
 SQLite (`drop serve`) the same statement runs through SQLAlchemy in the threadpool. Rows come back with attribute
 access either way (psycopg's namedtuple rows, SQLAlchemy's `Row`), so serialisers read them as they read ORM objects.
 
