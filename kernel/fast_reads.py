@@ -3,9 +3,10 @@ awaited on the event loop.
 
 A read through a pooled ORM session in the threadpool cost about 520 µs of the API's time on PostgreSQL, the same
 query through psycopg's async pool 180 µs, each timed in a loop (bench/NOTES.md). So on PostgreSQL each statement is
-compiled once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round trip. On
-SQLite (`drop serve`) the same statement runs through SQLAlchemy in the threadpool. Rows come back with attribute
-access either way (psycopg's namedtuple rows, SQLAlchemy's `Row`), so serialisers read them as they read ORM objects.
+compiled once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round
+trip. On SQLite (`drop serve`) the same statement runs through SQLAlchemy in the threadpool. Rows come back with
+attribute access either way (psycopg's namedtuple rows, SQLAlchemy's `Row`), so serialisers read them as they read ORM
+objects.
 
 Statements are built once, at import, with named `bindparam`s, and passed with their values: compiling is cached by
 the statement object, so a statement built per request would be compiled per request.
