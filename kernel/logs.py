@@ -10,6 +10,7 @@ import asyncio
 import json
 import logging
 import select
+import sys
 import threading
 import time
 from datetime import datetime, timezone
@@ -46,6 +47,24 @@ class OncePer(logging.Filter):
         if dropped:
             record.msg, record.args = f"{record.getMessage()}\n({dropped} more dropped since the last)", ()
         return True
+
+
+class StderrHandler(logging.StreamHandler):
+    """Writes to `sys.stderr` as it is when a line is written, as logging's own last-resort handler does, unless
+    `setStream` fixed a stream. A handler holding the stderr of its creation writes to a closed file once that
+    stderr is swapped and closed (pytest's per-test capture), and every line then prints a traceback instead."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._fixed = None
+
+    @property
+    def stream(self):
+        return self._fixed or sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        self._fixed = value
 
 
 ACCESS_LOGGER = "drop.access"
@@ -129,7 +148,7 @@ def configure(fmt: LogFormat = "json", level: str = "INFO") -> None:
         render = [structlog.processors.format_exc_info, structlog.processors.JSONRenderer()]
     else:
         render = [structlog.dev.ConsoleRenderer(colors=False)]
-    handler = logging.StreamHandler()
+    handler = StderrHandler()
     handler.addFilter(OncePer(ACCEPT_ERROR, ACCEPT_ERROR_EVERY_S))
     handler.setFormatter(structlog.stdlib.ProcessorFormatter(
         foreign_pre_chain=shared, processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, *render]))

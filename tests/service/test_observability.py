@@ -108,6 +108,29 @@ def test_the_written_access_line_is_the_logged_one(json_logs):
     assert written == logged and written["request_id"] == "r-1" and written["path"] == "/v1/jobs/ünï"
 
 
+def test_log_lines_follow_stderr_once_it_is_swapped(monkeypatch):
+    """The handler writes to the stderr of the moment: one made before stderr was swapped and closed (pytest's
+    capture between tests) neither writes to the closed file nor prints logging's error traceback."""
+    from kernel import logs
+
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level, logs.access_line
+    first, second, errors = io.StringIO(), io.StringIO(), []
+    try:
+        monkeypatch.setattr("sys.stderr", first)
+        logs.configure("json", "INFO")
+        monkeypatch.setattr(logging.Handler, "handleError", lambda self, record: errors.append(record))
+        first.close()
+        monkeypatch.setattr("sys.stderr", second)
+        logging.getLogger("drop.test").info("after the swap")
+        logs.access_line("GET", "/healthz", 200, 0.1)
+        logs.flush_access()
+    finally:
+        root.handlers, root.level, logs.access_line = saved
+    lines = [json.loads(line) for line in second.getvalue().splitlines()]
+    assert not errors and [line["event"] for line in lines] == ["after the swap", "request"]
+
+
 def test_request_id_round_trip_and_on_log_lines(client, alice, json_logs):
     r = alice.get("/v1/jobs", headers={"X-Request-ID": "trace-42.a"})
     assert r.status_code == 200 and r.headers["x-request-id"] == "trace-42.a"
