@@ -26,23 +26,28 @@ UNMATCHED = "unmatched"  # any path no route serves: one label, however many pat
 
 class RequestIds:
     """New request ids: 64 random bits drawn once per process, then a counter. Unique across processes and restarts
-    as uuid4's are, without uuid4's random-number syscall per request (5-7 µs here, on a 190 µs /healthz)."""
+    as uuid4's are, without uuid4's random-number syscall per request (5-7 µs here, on a 190 µs /healthz). One per
+    process (`IDS`), redrawn in a forked child."""
 
     def __init__(self) -> None:
+        self._restart()
+        os.register_at_fork(after_in_child=self._restart)  # a forked process must not repeat its parent's ids
+
+    def _restart(self) -> None:
         self._prefix, self._count = secrets.token_hex(8), itertools.count()
-        self._pid = os.getpid()
 
     def new(self) -> str:
-        if os.getpid() != self._pid:  # a forked process must not repeat its parent's ids
-            self.__init__()
         return f"{self._prefix}{next(self._count):016x}"
 
 
-def request_id(scope: Scope, ids: RequestIds) -> str:
+IDS = RequestIds()
+
+
+def request_id(scope: Scope) -> str:
     for name, value in scope["headers"]:
         if name == HEADER and SANE_ID.match(value):
             return value.decode()
-    return ids.new()
+    return IDS.new()
 
 
 def route_template(scope: Scope) -> str:
@@ -53,7 +58,6 @@ def route_template(scope: Scope) -> str:
 class ObserveRequests:
     def __init__(self, app: ASGIApp):
         self.app = app
-        self._ids = RequestIds()
         self._children: dict[tuple[str, str, int], tuple] = {}
 
     def _series(self, method: str, route: str, status: int) -> tuple:
@@ -69,7 +73,7 @@ class ObserveRequests:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        rid = request_id(scope, self._ids)
+        rid = request_id(scope)
         start = time.perf_counter()
         answered: dict = {}
 
@@ -79,14 +83,16 @@ class ObserveRequests:
                 message["headers"] = [*message.get("headers", ()), (HEADER, rid.encode())]
             await send(message)
 
-        with structlog.contextvars.bound_contextvars(request_id=rid):
-            try:
-                await self.app(scope, receive, send_with_id)
-            finally:
-                status = answered.get("status", 500)  # no answer started: the error middleware answers 500
-                seconds = answered.get("seconds", time.perf_counter() - start)
-                method = scope["method"] if scope["method"] in METHODS else "other"  # clients choose methods too
-                count, latency = self._series(method, route_template(scope), status)
-                count.inc()
-                latency.observe(seconds)
-                logs.access_line(method, scope["path"], status, round(seconds * 1000, 1))
+        # bind and reset, not `bound_contextvars`: that one reads every context variable twice (6 µs against 1.5)
+        tokens = structlog.contextvars.bind_contextvars(request_id=rid)
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            status = answered.get("status", 500)  # no answer started: the error middleware answers 500
+            seconds = answered.get("seconds", time.perf_counter() - start)
+            method = scope["method"] if scope["method"] in METHODS else "other"  # clients choose methods too
+            count, latency = self._series(method, route_template(scope), status)
+            count.inc()
+            latency.observe(seconds)
+            logs.access_line(method, scope["path"], status, round(seconds * 1000, 1))
+            structlog.contextvars.reset_contextvars(**tokens)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import time
 
 import pytest
@@ -100,7 +101,7 @@ def test_the_written_access_line_is_the_logged_one(json_logs):
     from kernel import logs
 
     assert logs.access_line is not logs._access_through_logging
-    with structlog.contextvars.bound_contextvars(request_id="r-1", job_id="job_1"):
+    with structlog.contextvars.bound_contextvars(request_id="r-1", job_id="job_1", attempt=2):
         logs.access_line("GET", "/v1/jobs/ünï", 404, 1.5)
         logs._access_through_logging("GET", "/v1/jobs/ünï", 404, 1.5)
     written, logged = json_logs()
@@ -129,6 +130,20 @@ def test_log_lines_follow_stderr_once_it_is_swapped(monkeypatch):
         root.handlers, root.level, logs.access_line = saved
     lines = [json.loads(line) for line in second.getvalue().splitlines()]
     assert not errors and [line["event"] for line in lines] == ["after the swap", "request"]
+
+
+def test_request_ids_are_redrawn_in_a_forked_child():
+    """`drop api --workers N` forks: a child must not count on from its parent's prefix."""
+    from app.observability.observe import IDS
+
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.write(write, IDS.new().encode())
+        os._exit(0)
+    os.waitpid(pid, 0)
+    child, parent = os.read(read, 64).decode(), IDS.new()
+    assert len(child) == len(parent) == 32 and child[:16] != parent[:16]
 
 
 def test_request_id_round_trip_and_on_log_lines(client, alice, json_logs):
