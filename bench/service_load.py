@@ -185,17 +185,29 @@ def cpu_seconds(pid: int) -> float:
     return own + sum(cpu_seconds(kid) for kid in kids)
 
 
-def wrk(url: str, token: str, seconds: float, pid: int, connections: int = 16) -> tuple[float, int, float]:
-    """(requests per second, answers other than 2xx, the API's CPU µs per request) of wrk's closed loop on one URL.
-    CPU per request varies far less than throughput on a noisy machine, so it tells small costs apart."""
-    cpu = cpu_seconds(pid)
+def postgres_cpu_seconds() -> float:
+    """User + system CPU time so far of every PostgreSQL process on the machine (the server the API reads from)."""
+    total = 0.0
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and (proc / "comm").read_text().strip() == "postgres":
+                total += sum(int(f) for f in (proc / "stat").read_text().rsplit(")", 1)[1].split()[11:13])
+        except OSError:  # gone meanwhile
+            pass
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def wrk(url: str, token: str, seconds: float, pid: int, connections: int = 16) -> tuple[float, int, float, float]:
+    """(requests per second, answers other than 2xx, the API's CPU µs per request, PostgreSQL's) of wrk's closed loop
+    on one URL. CPU per request varies far less than throughput on a noisy machine, so it tells small costs apart."""
+    cpu, db = cpu_seconds(pid), postgres_cpu_seconds()
     out = subprocess.run(["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "-H", f"Authorization: Bearer {token}",
                           url], check=True, capture_output=True, text=True).stdout
-    cpu = cpu_seconds(pid) - cpu
+    cpu, db = cpu_seconds(pid) - cpu, postgres_cpu_seconds() - db
     bad = re.search(r"Non-2xx or 3xx responses: (\d+)", out)
-    requests = int(re.search(r"(\d+) requests in", out).group(1))
+    requests = max(int(re.search(r"(\d+) requests in", out).group(1)), 1)
     return (float(re.search(r"Requests/sec:\s+([\d.]+)", out).group(1)), int(bad.group(1)) if bad else 0,
-            1e6 * cpu / max(requests, 1))
+            1e6 * cpu / requests, 1e6 * db / requests)
 
 
 def ceiling(args, folder: Path) -> dict:
@@ -217,13 +229,14 @@ def ceiling(args, folder: Path) -> dict:
                                                                  args.api_workers, observed))
             targets += [(name, "GET /healthz", base + "/healthz", token, pid),
                         (name, "GET /v1/jobs/{id}", base + job, token, pid)]
-        runs: dict[tuple[str, str], list[tuple[float, int, float]]] = defaultdict(list)
+        runs: dict[tuple[str, str], list[tuple[float, int, float, float]]] = defaultdict(list)
         for r in range(args.ceiling_rounds):
             print(f"  ceiling round {r + 1}/{args.ceiling_rounds}", flush=True)
             for name, endpoint, url, token, pid in targets:
                 runs[(name, endpoint)].append(wrk(url, token, args.ceiling_round_s, pid))
     table = {name: {endpoint: {"rps": round(float(np.median([r[0] for r in runs[(name, endpoint)]])), 1),
                                "cpu_us": round(float(np.median([r[2] for r in runs[(name, endpoint)]])), 1),
+                               "db_cpu_us": round(float(np.median([r[3] for r in runs[(name, endpoint)]])), 1),
                                "rounds": runs[(name, endpoint)],
                                "errors": sum(r[1] for r in runs[(name, endpoint)])}
                     for endpoint in ("GET /healthz", "GET /v1/jobs/{id}")} for name, *_ in variants}
@@ -519,11 +532,13 @@ def ceiling_markdown(c: dict) -> list[str]:
     lines = [f"## Ceiling: the API alone, no worker ({c['api_workers']} API process(es), wrk with {c['connections']} "
              f"connections, the median of {c['rounds']} alternating rounds of {c['round_s']:g} s)", "",
              "| service | `GET /healthz` req/s | `GET /v1/jobs/{id}` req/s (auth, PostgreSQL) | share of healthz | "
-             "API CPU µs per healthz | per job read | errors |", "|---|---|---|---|---|---|---|"]
+             "API CPU µs per healthz | per job read | PostgreSQL CPU µs per job read | errors |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, row in c["variants"].items():
         health, job = row["GET /healthz"], row["GET /v1/jobs/{id}"]
         lines.append(f"| {name} | {health['rps']} | {job['rps']} | {row['job_share_of_healthz']:.0%} | "
-                     f"{health['cpu_us']} | {job['cpu_us']} | {health['errors'] + job['errors']} |")
+                     f"{health['cpu_us']} | {job['cpu_us']} | {job.get('db_cpu_us', '-')} | "
+                     f"{health['errors'] + job['errors']} |")
     table, here = c["variants"], c["variants"]["this code"]
 
     def cost(base: dict, what: str) -> str:

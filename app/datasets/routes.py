@@ -4,9 +4,9 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.responses import JSONResponse
 
 from ..core.deps import AppSettings, DatasetCursor, DbSession, OwnerId
+from ..core.fast_json import FastJSONResponse
 from ..core.pages import Page
 from ..observability.metrics import counting_rejections
 from . import service
@@ -32,8 +32,8 @@ def datasets_list(owner: OwnerId, s: DbSession, after: DatasetCursor = None,
 
 
 @router.get("/{dataset_id}", response_model=DatasetOut)
-async def datasets_get(dataset_id: str, request: Request, owner: OwnerId) -> JSONResponse:
-    return JSONResponse(await service.get(request.app.state.fast_reads, owner, dataset_id))
+async def datasets_get(dataset_id: str, request: Request, owner: OwnerId) -> FastJSONResponse:
+    return FastJSONResponse(await service.get(request.app.state.fast_reads, owner, dataset_id))
 
 
 @router.delete("/{dataset_id}", status_code=204, summary="Delete a dataset (409 while a job uses it)")

@@ -8,7 +8,7 @@ from functools import partial
 from typing import Annotated, Callable
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
+from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
 from drop_engine.plots import learning_curve
@@ -17,6 +17,7 @@ from kernel.fast_reads import FastReads
 from kernel.job_state import FINAL
 
 from ..core.deps import AppSettings, DbSession, OwnerId
+from ..core.fast_json import FastJSONResponse
 from ..core.openapi import BINARY
 from ..core.pages import Page
 from . import reads
@@ -77,7 +78,7 @@ async def jobs_get_events(job_id: str, request: Request, owner: OwnerId, after: 
                           limit: Annotated[int, Query(ge=1, le=1000)] = 100):
     fast_reads = request.app.state.fast_reads
     if "text/event-stream" not in request.headers.get("accept", ""):
-        return JSONResponse(await reads.events_page(fast_reads, owner, job_id, after, limit))
+        return FastJSONResponse(await reads.events_page(fast_reads, owner, job_id, after, limit))
     await reads.check_owned(fast_reads, owner, job_id)
     last = request.headers.get("last-event-id", "")
     start = int(last) if last.isascii() and last.isdigit() and int(last) <= MAX_ROW_ID else after

@@ -4,11 +4,11 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
-from fastapi.responses import JSONResponse
 
 from kernel.job_state import JobStatus
 
 from ..core.deps import AppSettings, DbSession, JobCursor, OwnerId
+from ..core.fast_json import FastJSONResponse
 from ..core.pages import Page
 from . import reads, service
 from .request import JobRequest
@@ -31,13 +31,13 @@ def jobs_create(req: JobRequest, request: Request, response: Response, owner: Ow
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first")
 async def jobs_list(request: Request, owner: OwnerId, status: JobStatus | None = None, after: JobCursor = None,
-                    limit: Annotated[int, Query(ge=1, le=100)] = 20) -> JSONResponse:
-    return JSONResponse(await reads.jobs_page(request.app.state.fast_reads, owner, status, after, limit))
+                    limit: Annotated[int, Query(ge=1, le=100)] = 20) -> FastJSONResponse:
+    return FastJSONResponse(await reads.jobs_page(request.app.state.fast_reads, owner, status, after, limit))
 
 
 @router.get("/{job_id}", response_model=JobOut)
-async def jobs_get(job_id: str, request: Request, owner: OwnerId) -> JSONResponse:
-    return JSONResponse(await reads.job(request.app.state.fast_reads, owner, job_id))
+async def jobs_get(job_id: str, request: Request, owner: OwnerId) -> FastJSONResponse:
+    return FastJSONResponse(await reads.job(request.app.state.fast_reads, owner, job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,

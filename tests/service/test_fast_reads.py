@@ -4,12 +4,14 @@ pool's connections; and on SQLite the same statements run through SQLAlchemy."""
 from __future__ import annotations
 
 import asyncio
+import json
 from datetime import datetime, timezone
 
 import psycopg
 import pytest
 from sqlalchemy import select
 
+from app.core.fast_json import FastJSONResponse
 from app.core.problems import Problem
 from app.jobs import reads, schemas
 from kernel.db import make_sessionmaker
@@ -135,3 +137,11 @@ def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
         assert fast._pool is None and (pool is None or pool.closed)
     finally:
         other.close()
+
+
+def test_fast_json_bodies_read_back_as_written():
+    """The hot reads' bodies (pydantic-core's encoder) parse to what they were made from; NaN and infinities are
+    null, not a 500."""
+    content = {"ü": "ünï \u2028 \"q\"", "n": [1, 2.5, 1e300, -0.0, None, True], "deep": {"a": {"b": []}}, "big": 2**70}
+    assert json.loads(FastJSONResponse(content).body) == content
+    assert json.loads(FastJSONResponse({"x": float("nan"), "y": [float("-inf")]}).body) == {"x": None, "y": [None]}
