@@ -103,6 +103,10 @@ class DiceConfig(_Strict):
     discount: Annotated[float, Field(ge=0, lt=1)] | Literal["sac", "horizon"] = Field(
         "sac", description="the occupancy's discount: 'sac' uses SAC's gamma (the paper); 'horizon' uses (h-1)/(h+1), "
                            "whose mean step (h-1)/2 is that of the h-step model rollouts the penalty is applied to")
+    average: float = Field(1.0, gt=0, le=1, description=(
+        "Polyak weight of the newest iterate in the tau the penalty reads: 1 reads the latest iterate (the paper); "
+        "below 1 an exponential average of the iterates, which sits at the saddle point while single iterates "
+        "circle it (bench/QUALITY.md E10)"))
 
 
 class PenaltyConfig(_Strict):

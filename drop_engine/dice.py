@@ -2,10 +2,12 @@
 
 All estimators are one batched module (member k = elite k). The saddle point min_tau max_{f, nu} J is approached
 with simultaneous gradient steps on the same batch: one backward pass of J, then the f/nu gradients are negated so
-their optimiser ascends while tau's descends.
+their optimiser ascends while tau's descends. Such steps circle the saddle point rather than settle on it, so with
+`average` below 1 the penalty reads an exponential (Polyak) average of tau's iterates, as SAC's target critics are.
 """
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -13,7 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import DiceConfig
-from .nn import EnsembleMLP, Standardize, adam
+from .nn import EnsembleMLP, Standardize, adam, soft_update
 
 
 class GradientDice(nn.Module):
@@ -27,6 +29,8 @@ class GradientDice(nn.Module):
         # Start at tau = 1, the ratio of identical distributions, so an estimator that has not trained yet
         # neither penalises nor rewards anything (softplus(log(e - 1)) = 1).
         nn.init.constant_(self.tau_net.out.bias, math.log(math.e - 1) if cfg.positive else 1.0)
+        self.average = cfg.average
+        self.tau_avg = copy.deepcopy(self.tau_net).requires_grad_(False) if cfg.average < 1 else None
         self.nu = nn.Parameter(torch.zeros(members, 1))
         self.tau_optim = adam(self.tau_net.parameters(), cfg.lr)
         self.f_optim = adam([*self.f_net.parameters(), self.nu], cfg.lr)
@@ -34,15 +38,16 @@ class GradientDice(nn.Module):
     def _input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return torch.cat([self.norm(obs), act], -1)
 
-    def _tau(self, x: torch.Tensor) -> torch.Tensor:
+    def _tau(self, x: torch.Tensor, net: nn.Module | None = None) -> torch.Tensor:
         # A ratio of densities is never negative; the paper's linear output can be, and a negative tau turns the log
         # penalty into its clip floor everywhere. softplus keeps the estimator in the ratio's range.
-        raw = self.tau_net(x).squeeze(-1)
+        raw = (self.tau_net if net is None else net)(x).squeeze(-1)
         return F.softplus(raw) if self.positive else raw
 
     def tau(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        """Ratio estimates, (members, N); inputs (N, d) shared or (members, N, d)."""
-        return self._tau(self._input(obs, act))
+        """The estimates the penalty reads (the averaged estimator's, if any), (members, N); inputs (N, d) shared or
+        (members, N, d)."""
+        return self._tau(self._input(obs, act), self.tau_avg)
 
     def objective(self, obs, act, next_obs, next_act, obs0, act0, not_done) -> tuple[torch.Tensor, torch.Tensor]:
         """J_k per member, (members,), and tau at the data's (s, a), (members, N).
@@ -77,8 +82,13 @@ class GradientDice(nn.Module):
         self.tau_optim.step()
         self.f_optim.step()
         tau = tau.detach()
-        return {"dice/objective": j.detach().mean(), "dice/tau_data_mean": tau.mean(),
-                "dice/tau_data_std": tau.std(1).mean(), "dice/tau_data_negative": (tau < 0).float().mean()}
+        metrics = {"dice/objective": j.detach().mean(), "dice/tau_data_mean": tau.mean(),
+                   "dice/tau_data_std": tau.std(1).mean(), "dice/tau_data_negative": (tau < 0).float().mean()}
+        if self.tau_avg is not None:
+            soft_update(self.tau_avg, self.tau_net, self.average)
+            with torch.no_grad():
+                metrics["dice/tau_avg_data_mean"] = self.tau(obs, act).mean()
+        return metrics
 
     def optim_state(self) -> dict:
         return {"tau_optim": self.tau_optim.state_dict(), "f_optim": self.f_optim.state_dict()}

@@ -113,8 +113,9 @@ def test_gradient_dice_recovers_a_continuous_ratio():
     E_D[tau] at 1 and never goes negative.
 
     Simultaneous gradient steps on a saddle point circle around it: a single late iterate's E_D[tau] swings between
-    0.8 and 1.15 here, and where in the swing step 8000 lands changes with the CPU's floating-point kernels. So the
-    test checks the average of the last 2,000 steps' estimates (iterate averaging), which sits at the saddle point."""
+    0.8 and 1.15 here, and where in the swing step 8000 lands changes with the CPU's floating-point kernels. The tau
+    the penalty reads is the Polyak average of the iterates (`average`), which sits at the saddle point: the test
+    checks that one, and that it swings far less than the latest iterate."""
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     gamma, behaviour, target = 0.8, (-0.5, 0.6), (-0.1, 0.3)
@@ -129,23 +130,25 @@ def test_gradient_dice_recovers_a_continuous_ratio():
 
     col = lambda v: torch.as_tensor(v, dtype=torch.float32)[:, None]  # noqa: E731
     obs, act, nxt, nact, obs0, act0 = map(col, (s, a, s_next, a_next, s0, a0))
-    dice = GradientDice(1, 1, 1, DiceConfig(hidden=(64, 64), lr=1e-3, lam=1.0, positive=True), gamma)
+    dice = GradientDice(1, 1, 1, DiceConfig(hidden=(64, 64), lr=1e-3, lam=1.0, positive=True, average=0.002), gamma)
     dice.norm.set(obs.mean(0), obs.std(0))
     gen = torch.Generator().manual_seed(0)
-    iterates = []
+    latest_means, averaged_means = [], []
     for step in range(1, 8001):
         if step == 5001:
             for group in [*dice.tau_optim.param_groups, *dice.f_optim.param_groups]:
                 group["lr"] = 2e-4
         i = torch.randint(0, len(s), (512,), generator=gen)
         dice.update(obs[i], act[i], nxt[i][None], nact[i][None], obs0[i], act0[i], torch.ones(1, 512))
-        if step > 6000 and step % 100 == 0:
+        if step > 6000 and step % 250 == 0:
             with torch.no_grad():
-                iterates.append(dice.tau(obs, act)[0].numpy())
-    last, estimate = iterates[-1], np.mean(iterates, 0)
-    assert abs(last.mean() - 1) < 0.4, last.mean()
+                latest_means.append(dice._tau(dice._input(obs, act))[0].mean().item())
+                estimate = dice.tau(obs, act)[0].numpy()
+            averaged_means.append(estimate.mean())
+    assert abs(latest_means[-1] - 1) < 0.4, latest_means
+    assert np.std(averaged_means) < 0.5 * np.std(latest_means), (averaged_means, latest_means)
     weighted_rel_error = np.abs(estimate - ratio).mean() / ratio.mean()
-    assert weighted_rel_error < 0.2, weighted_rel_error
+    assert weighted_rel_error < 0.15, weighted_rel_error
     assert abs(estimate.mean() - 1) < 0.1, estimate.mean()
     assert estimate.min() >= 0
     from scipy.stats import spearmanr

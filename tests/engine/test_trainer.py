@@ -121,7 +121,9 @@ def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_datase
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     whole = Recorder()
-    trainer = Trainer(hopper_dataset, _config("drop", epochs=3), tmp_path_factory.mktemp("whole"), whole)
+    # An averaged DICE estimator too: its average is state a resumed run must restore, or its penalties differ.
+    cfg = _config("drop", epochs=3, dice={"average": 0.5})
+    trainer = Trainer(hopper_dataset, cfg, tmp_path_factory.mktemp("whole"), whole)
     trainer.run()
     return trainer, whole
 
