@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     p.add_argument("--threads", type=int, default=None, help="torch threads per run (default: 1 with --jobs > 1)")
     p.add_argument("--report", action="store_true",
-                   help="only rewrite paper_table.md from the recorded runs of this setting; train nothing")
+                   help="only rewrite this setting's table (paper_table.md; paper_table_KEY-VALUE.md with --set) "
+                        "from the recorded runs; train nothing")
     args = p.parse_args(argv)
 
     out = Path(args.out)
@@ -172,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
-        (out / "paper_table.md").write_text(text)
+        # A setting with overrides (an ablation) gets a table of its own and never overwrites the preset's.
+        name = "_".join(["paper_table", *same_setting["set"]]).replace("/", "-").replace("=", "-")
+        (out / f"{name}.md").write_text(text)
         return text
 
     if args.report:
