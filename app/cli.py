@@ -175,8 +175,10 @@ def _supervising(workers: int) -> Iterator[None]:
 
 def _uvicorn_options(host: str, port: int, workers: int) -> dict:
     """Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours."""
+    from .serving.http_protocol import IMPORT_PATH
+
     return {"app": "app.main:served_app", "factory": True, "host": host, "port": port, "workers": workers,
-            "log_config": None, "access_log": False, "timeout_graceful_shutdown": GRACEFUL_S}
+            "log_config": None, "access_log": False, "timeout_graceful_shutdown": GRACEFUL_S, "http": IMPORT_PATH}
 
 
 def _run_api(settings, host: str, port: int, workers: int) -> int:
