@@ -93,10 +93,10 @@ UNOBSERVED = ("import sys, app.main; app.main.ObserveRequests = lambda inner: in
 
 
 def api_command(repo: Path, port: int, workers: int, observed: bool = True) -> list[str]:
-    """`drop api` from `repo`; a checkout from before `--workers` existed runs one process anyway."""
+    """`drop api` from `repo` with `workers` processes; a checkout from before `--workers` existed runs one anyway."""
     start = ["-m", "app.cli"] if observed else ["-c", UNOBSERVED]
     command = [sys.executable, *start, "api", "--host", "127.0.0.1", "--port", str(port)]
-    return command + (["--workers", str(workers)] if repo == REPO else [])
+    return command + (["--workers", str(workers)] if "--workers" in (repo / "app/cli.py").read_text() else [])
 
 
 @contextmanager
