@@ -173,8 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
-        # A setting with overrides (an ablation) gets a table of its own and never overwrites the preset's.
-        name = "_".join(["paper_table", *same_setting["set"]]).replace("/", "-").replace("=", "-")
+        # Another preset, or a setting with overrides (an ablation), gets a table of its own: never the cpu preset's.
+        preset = [] if args.preset == "cpu" else [args.preset]
+        name = "_".join(["paper_table", *preset, *same_setting["set"]]).replace("/", "-").replace("=", "-")
         (out / f"{name}.md").write_text(text)
         return text
 

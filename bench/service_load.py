@@ -186,7 +186,8 @@ def cpu_seconds(pid: int) -> float:
 
 
 def postgres_cpu_seconds() -> float:
-    """User + system CPU time so far of every PostgreSQL process on the machine (the server the API reads from)."""
+    """User + system CPU time so far of every PostgreSQL process on the machine: the server the API reads from, and
+    approximate (another cluster's processes count too; a backend that exits meanwhile takes its time with it)."""
     total = 0.0
     for proc in Path("/proc").iterdir():
         try:

@@ -106,7 +106,8 @@ class DiceConfig(_Strict):
     average: float = Field(1.0, gt=0, le=1, description=(
         "Polyak weight of the newest iterate in the tau the penalty reads: 1 reads the latest iterate (the paper); "
         "below 1 an exponential average of the iterates, which sits at the saddle point while single iterates "
-        "circle it (bench/QUALITY.md E10)"))
+        "circle it (bench/QUALITY.md E10, E15). The average remembers about 1/average steps, so it also lags the "
+        "policy by that much: keep 1/average near dice.steps_per_epoch"))
 
 
 class PenaltyConfig(_Strict):

@@ -69,6 +69,7 @@ class StderrHandler(logging.StreamHandler):
 
 ACCESS_LOGGER = "drop.access"
 ACCESS_FLUSH_S, ACCESS_BATCH = 0.2, 256
+ACCESS_FIELDS = frozenset(("event", "logger", "level", "method", "path", "status", "ms", "timestamp"))
 _access_logger = logging.getLogger(ACCESS_LOGGER)
 
 
@@ -99,11 +100,13 @@ class AccessWriter:
         return f"{stamp}.{int((now - second) * 1e6):06d}Z"
 
     def __call__(self, method: str, path: str, status: int, ms: float) -> None:
-        # The JSON a dict of these fields would encode to, written out: only the strings go through the encoder.
+        # The JSON a dict of these fields would encode to, written out: only the strings go through the encoder. A
+        # bound variable named as one of the line's own fields gives way to it, as structlog's merge does.
         text = json.encoder.encode_basestring_ascii
-        bound = "".join(f"{text(k)}: {self._encode(v)}, " for k, v in structlog.contextvars.get_contextvars().items())
-        line = (f'{{"event": "request", {bound}"logger": "{ACCESS_LOGGER}", "level": "info", "method": {text(method)}, '
-                f'"path": {text(path)}, "status": {int(status)}, "ms": {float(ms)!r}, '
+        bound_now = structlog.contextvars.get_contextvars()
+        context = "".join(f"{text(k)}: {self._encode(v)}, " for k, v in bound_now.items() if k not in ACCESS_FIELDS)
+        line = (f'{{"event": "request", {context}"logger": "{ACCESS_LOGGER}", "level": "info", '
+                f'"method": {text(method)}, "path": {text(path)}, "status": {int(status)}, "ms": {float(ms)!r}, '
                 f'"timestamp": "{self._timestamp()}"}}\n')
         with self.handler.lock:
             self._pending.append(line)

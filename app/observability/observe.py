@@ -31,7 +31,6 @@ class RequestIds:
 
     def __init__(self) -> None:
         self._restart()
-        os.register_at_fork(after_in_child=self._restart)  # a forked process must not repeat its parent's ids
 
     def _restart(self) -> None:
         self._prefix, self._count = secrets.token_hex(8), itertools.count()
@@ -41,6 +40,7 @@ class RequestIds:
 
 
 IDS = RequestIds()
+os.register_at_fork(after_in_child=IDS._restart)  # a forked process must not repeat its parent's ids
 
 
 def request_id(scope: Scope) -> str:
@@ -88,11 +88,13 @@ class ObserveRequests:
         try:
             await self.app(scope, receive, send_with_id)
         finally:
-            status = answered.get("status", 500)  # no answer started: the error middleware answers 500
-            seconds = answered.get("seconds", time.perf_counter() - start)
-            method = scope["method"] if scope["method"] in METHODS else "other"  # clients choose methods too
-            count, latency = self._series(method, route_template(scope), status)
-            count.inc()
-            latency.observe(seconds)
-            logs.access_line(method, scope["path"], status, round(seconds * 1000, 1))
-            structlog.contextvars.reset_contextvars(**tokens)
+            try:
+                status = answered.get("status", 500)  # no answer started: the error middleware answers 500
+                seconds = answered.get("seconds", time.perf_counter() - start)
+                method = scope["method"] if scope["method"] in METHODS else "other"  # clients choose methods too
+                count, latency = self._series(method, route_template(scope), status)
+                count.inc()
+                latency.observe(seconds)
+                logs.access_line(method, scope["path"], status, round(seconds * 1000, 1))
+            finally:
+                structlog.contextvars.reset_contextvars(**tokens)

@@ -25,8 +25,8 @@ async def _ok(scope, receive, send) -> None:
 def test_connections_on_a_socket_uvicorn_bound(http, nodelay):
     """uvicorn's own protocol on its own bound socket leaves Nagle on (the bug, asserted so a uvicorn that fixes it
     shows up here); the API's protocol turns it off."""
-    config = uvicorn.Config(_ok, host="127.0.0.1", port=0, http=http, log_config=None, access_log=False,
-                            lifespan="off")
+    config = uvicorn.Config(_ok, host="127.0.0.1", port=0, http=http, loop="asyncio", log_config=None,
+                            access_log=False, lifespan="off")  # asyncio's loop: the one `drop api` runs
     sock = config.bind_socket()  # as uvicorn's process supervisor does for --workers N
     assert sock.proto == 0
     server = uvicorn.Server(config)

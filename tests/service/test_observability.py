@@ -84,9 +84,13 @@ def json_logs():
     logs.configure("json", "INFO")
     out = io.StringIO()
     root.handlers[0].setStream(out)
+    def once(pairs: list[tuple[str, object]]) -> dict:
+        assert len({k for k, _ in pairs}) == len(pairs), f"a key written twice: {pairs}"
+        return dict(pairs)
+
     def lines() -> list[dict]:
         logs.flush_access()  # access lines wait up to ACCESS_FLUSH_S
-        return [json.loads(line) for line in out.getvalue().splitlines()]
+        return [json.loads(line, object_pairs_hook=once) for line in out.getvalue().splitlines()]
 
     try:
         yield lines
@@ -101,12 +105,14 @@ def test_the_written_access_line_is_the_logged_one(json_logs):
     from kernel import logs
 
     assert logs.access_line is not logs._access_through_logging
-    with structlog.contextvars.bound_contextvars(request_id="r-1", job_id="job_1", attempt=2):
+    # `status` as a bound name too: the line's own field wins, and the key is written once
+    with structlog.contextvars.bound_contextvars(request_id="r-1", job_id="job_1", attempt=2, status="bound"):
         logs.access_line("GET", "/v1/jobs/ünï", 404, 1.5)
         logs._access_through_logging("GET", "/v1/jobs/ünï", 404, 1.5)
     written, logged = json_logs()
     assert written.pop("timestamp")[:16] == logged.pop("timestamp")[:16]
     assert written == logged and written["request_id"] == "r-1" and written["path"] == "/v1/jobs/ünï"
+    assert written["status"] == 404
 
 
 def test_log_lines_follow_stderr_once_it_is_swapped(monkeypatch):
@@ -138,11 +144,17 @@ def test_request_ids_are_redrawn_in_a_forked_child():
 
     read, write = os.pipe()
     pid = os.fork()
-    if pid == 0:
-        os.write(write, IDS.new().encode())
-        os._exit(0)
-    os.waitpid(pid, 0)
-    child, parent = os.read(read, 64).decode(), IDS.new()
+    if pid == 0:  # the child writes its id and leaves at once, whatever happens: never back into pytest
+        try:
+            os.write(write, IDS.new().encode())
+        finally:
+            os._exit(0)
+    try:
+        os.waitpid(pid, 0)
+        child, parent = os.read(read, 64).decode(), IDS.new()
+    finally:
+        os.close(read)
+        os.close(write)
     assert len(child) == len(parent) == 32 and child[:16] != parent[:16]
 
 
