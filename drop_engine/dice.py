@@ -86,8 +86,6 @@ class GradientDice(nn.Module):
                    "dice/tau_data_std": tau.std(1).mean(), "dice/tau_data_negative": (tau < 0).float().mean()}
         if self.tau_avg is not None:
             soft_update(self.tau_avg, self.tau_net, self.average)
-            with torch.no_grad():
-                metrics["dice/tau_avg_data_mean"] = self.tau(obs, act).mean()
         return metrics
 
     def optim_state(self) -> dict:

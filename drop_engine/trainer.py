@@ -256,6 +256,9 @@ class Trainer:
                 next_act = actor.act(next_obs)
                 act0 = actor.act(obs0)
             out = dice.update(obs, act, next_obs, next_act, obs0, act0, not_done)
+        if out and dice.tau_avg is not None:  # what the penalty reads, on the last batch: once, not every step
+            with torch.no_grad():
+                out["dice/tau_avg_data_mean"] = dice.tau(obs, act).mean()
         return out
 
     def sac_batch(self) -> tuple[tuple[torch.Tensor, ...], int]:

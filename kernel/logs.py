@@ -60,7 +60,7 @@ class StderrHandler(logging.StreamHandler):
 
     @property
     def stream(self):
-        return self._fixed or sys.stderr
+        return sys.stderr if self._fixed is None else self._fixed
 
     @stream.setter
     def stream(self, value) -> None:

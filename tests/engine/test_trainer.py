@@ -128,6 +128,13 @@ def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     return trainer, whole
 
 
+def test_an_averaged_estimator_reports_what_the_penalty_reads(uninterrupted):
+    _, whole = uninterrupted
+    averaged = [m["dice/tau_avg_data_mean"] for _, m in whole.metrics if "dice/tau_avg_data_mean" in m]
+    latest = [m["dice/tau_data_mean"] for _, m in whole.metrics if "dice/tau_data_mean" in m]
+    assert averaged and len(averaged) == len(latest) and all(a > 0 for a in averaged)
+
+
 @pytest.mark.parametrize("phase", ["sac", "dice", "rollout", "evaluate"])
 def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset, uninterrupted, phase):
     """Stopped mid-way through a phase, then resumed: the same numbers as a run never stopped. A stop inside the
