@@ -130,3 +130,23 @@ def test_job_status_check_keeps_recorded_jobs_and_downgrades(backend, tmp_path):
 @contextmanager
 def _no_database() -> Iterator[None]:
     yield None
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_models_describe_the_migrated_schema(backend, tmp_path):
+    """kernel/models.py and migrations/ are two descriptions of one schema: a column, index or type added to one and
+    not the other is a diff here (alembic's autogenerate comparison; it does not compare CHECK constraints)."""
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    from kernel.db import make_engine
+    from kernel.models import Base
+
+    with database() if backend == "postgresql" else _no_database() as pg_url:
+        url = pg_url or f"sqlite:///{tmp_path / 'head.db'}"
+        upgrade(url)
+        engine = make_engine(url)
+        with engine.connect() as conn:
+            diff = compare_metadata(MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata)
+        engine.dispose()
+    assert diff == []
