@@ -96,6 +96,25 @@ def test_unknown_and_foreign_jobs_are_404_and_events_page(db):
     assert none_after == {"object": "list", "data": [], "has_more": False, "next_after": None}
 
 
+def test_events_pages_walk_every_event_in_order(db):
+    """The page is cut before the join with the owner's job: each page continues where the last ended."""
+    engine, sessions, ids = db
+    with sessions.begin() as s:
+        s.add_all(JobEvent(job_id=ids[2], type="progress", message=f"more {i}") for i in range(24))
+
+    async def body(fast):
+        pages, after = [], 0
+        while after is not None:
+            pages.append(await reads.events_page(fast, OWNER, ids[2], after, 10))
+            after = pages[-1]["next_after"]
+        return pages
+
+    pages = asyncio.run(run(body)(engine))
+    assert [(len(p["data"]), p["has_more"]) for p in pages] == [(10, True), (10, True), (5, False)]
+    messages = [e["message"] for p in pages for e in p["data"]]
+    assert messages == ["event 2"] + [f"more {i}" for i in range(24)]
+
+
 def test_a_read_survives_the_server_dropping_its_connections(db):
     engine, _, ids = db
     if engine.dialect.name != "postgresql":
