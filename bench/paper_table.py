@@ -20,7 +20,7 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"),
                              initializer=torch.set_num_threads if threads else None, initargs=(threads,)) as pool:
         futures = [pool.submit(run_one, *job, args, runs) for job in todo]
-        for future in futures:
+        for future in as_completed(futures):  # recorded as each ends: a stopped table keeps every finished run
             record = future.result()
             print(f"{record['env']}-{record['kind']} {record['algorithm']} seed {record['seed']}: "
                   f"final {record['final']:.1f}", flush=True)
