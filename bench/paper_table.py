@@ -189,9 +189,11 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"{path} is missing: run `make bench-data` first")
         behaviour[f"{env}-{kind}"] = describe(path)
     done = {key(r) for r in on_file(kept.get("records", []), behaviour) if r["setting"] == same_setting}
-    # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few.
+    # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
+    # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its
+    # own ensemble, instead of one waiting for the ensemble the other is training (the cache's lock).
     todo = [(path, behaviour[f"{env}-{kind}"]["dataset"], env, kind, algorithm, seed)
-            for (env, kind), path in paths.items() for seed in args.seeds for algorithm in args.algorithms
+            for seed in args.seeds for algorithm in args.algorithms for (env, kind), path in paths.items()
             if (env, kind, algorithm, seed) not in done]
 
     # Runs side by side get one torch thread each, behaviour cloning included: two threads per run on a machine whose
