@@ -2,7 +2,8 @@
 
 Kinds (ALGORITHM.md section 7): `random` (the randomly initialised policy), `medium` (the first evaluated policy
 reaching a third of the D4RL expert return), `medium-replay` (everything the agent collected up to that policy),
-`expert` (the policy at the end of training) and `medium-expert` (medium then expert rows). Behaviour policies act
+`expert` (the best evaluated policy of training: ALGORITHM.md's "fully trained policy", which a CPU budget's last
+policy need not be) and `medium-expert` (medium then expert rows). Behaviour policies act
 stochastically, as D4RL's did. Each file is written atomically and skipped when a finished one is already there, so
 `collect_datasets` resumes from whatever a stopped run left.
 """
@@ -143,8 +144,16 @@ def _attrs(cfg: CollectConfig, kind: str, arrays: dict[str, np.ndarray], behavio
     }
 
 
-def _matches(path: Path, cfg: CollectConfig) -> bool:
-    """A finished file from this same collection (so a resumed run keeps it)."""
+def _behaviour(agent: OnlineSAC, kind: str) -> list:
+    """The snapshots whose actions fill a kind's rows."""
+    if kind == "medium-expert":
+        return [agent.policy("medium"), agent.policy("expert")]
+    return [agent.policy("medium" if kind == "medium-replay" else kind)]
+
+
+def _matches(path: Path, cfg: CollectConfig, behaviour: list) -> bool:
+    """A finished file from this same collection and these behaviour policies (so a resumed run keeps it, and a
+    file an older rule made from other policies is made again)."""
     import h5py
 
     if not path.is_file():
@@ -154,17 +163,17 @@ def _matches(path: Path, cfg: CollectConfig) -> bool:
             a = handle.attrs
             return (str(a["env_name"]) == get_env(cfg.online.env).gym_id(cfg.online.version)
                     and int(a["seed"]) == cfg.online.seed and int(a["train_steps"]) == cfg.online.steps
-                    and int(a["transitions_per_policy"]) == cfg.transitions)
+                    and int(a["transitions_per_policy"]) == cfg.transitions
+                    and a["policy_steps"].tolist() == [s.step for s in behaviour])
     except (OSError, KeyError):
         return False
 
 
-def _record(cfg: CollectConfig, agent: OnlineSAC, kind: str, bar_factory) -> tuple[dict[str, np.ndarray], list]:
-    """Rows and behaviour snapshots of one kind; torch is reseeded per kind so each file is reproducible alone."""
+def _record(cfg: CollectConfig, agent: OnlineSAC, kind: str, bar_factory) -> dict[str, np.ndarray]:
+    """The rows of one kind; torch is reseeded per kind so each file is reproducible alone."""
+    [snap] = _behaviour(agent, kind)
     if kind == "medium-replay":
-        snap = agent.policy("medium")
-        return agent.history.arrays(snap.step), [snap]
-    snap = agent.policy(kind)
+        return agent.history.arrays(snap.step)
     index = KINDS.index(kind) + 1
     torch.manual_seed(cfg.online.seed * 100 + index)
     bar = bar_factory(kind, cfg.transitions)
@@ -174,7 +183,7 @@ def _record(cfg: CollectConfig, agent: OnlineSAC, kind: str, bar_factory) -> tup
                                      num_envs=cfg.num_envs, progress=bar.update_to)
     finally:
         bar.close()
-    return arrays, [snap]
+    return arrays
 
 
 class _Bar:
@@ -234,17 +243,16 @@ def collect_datasets(cfg: CollectConfig, out_dir: str | Path, kinds: tuple[str, 
         rows = []
         wanted = [k for k in KINDS if k in kinds or (k in ("medium", "expert") and "medium-expert" in kinds)]
         for kind in wanted:
-            path = cfg.dataset_path(out, kind)
-            if _matches(path, cfg):
+            path, behaviour = cfg.dataset_path(out, kind), _behaviour(agent, kind)
+            if _matches(path, cfg, behaviour):
                 arrays, attrs = read_arrays(path)
             else:
                 if kind == "medium-expert":
                     arrays = concatenate(made["medium"], made["expert"])
-                    behaviour = [agent.policy("medium"), agent.policy("expert")]
                 else:
                     try:
-                        arrays, behaviour = _record(cfg, agent, kind, lambda k, n: _Bar(f"{cfg.online.env}-{k}", n,
-                                                                                        progress, should_stop))
+                        arrays = _record(cfg, agent, kind, lambda k, n: _Bar(f"{cfg.online.env}-{k}", n, progress,
+                                                                             should_stop))
                     except Stopped:
                         return None
                 attrs = _attrs(cfg, kind, arrays, behaviour)

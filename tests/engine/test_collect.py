@@ -61,7 +61,11 @@ def test_kinds_are_what_they_say(collected):
     assert attrs["random"]["policy_steps"].tolist() == [0]
     assert attrs["medium"]["medium_threshold_reached"] and attrs["medium"]["policy_return"] >= 100.0
     assert 0 < attrs["medium"]["policy_steps"][0] <= cfg.online.steps
-    assert attrs["expert"]["policy_steps"].tolist() == [cfg.online.steps]
+    # expert is the best evaluated policy (the latest of equals), so medium-expert is never below medium.
+    snapshots = torch.load(out / "hopper-sac" / "online.pt", weights_only=False)["snapshots"]
+    best = max(snapshots[1:], key=lambda s: (s["mean_return"], s["step"]))
+    assert attrs["expert"]["policy_steps"].tolist() == [best["step"]]
+    assert attrs["expert"]["policy_return"] == best["mean_return"] >= attrs["medium"]["policy_return"]
     # A random policy falls at once; the medium one keeps hopping for much longer.
     assert rows["medium"]["mean_return"] > 2 * rows["random"]["mean_return"]
     assert rows["medium"]["episodes"] < rows["random"]["episodes"]
@@ -144,4 +148,11 @@ def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
     written = {p.name: p.stat().st_mtime_ns for p in out.glob("*.hdf5")}
     assert main(args) == 0  # finished files are kept, not remade
     assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.hdf5")} == written
+    with h5py.File(out / "hopper-medium-expert.hdf5", "r+") as handle:  # as an older rule's last-policy expert
+        steps = handle.attrs["policy_steps"]
+        handle.attrs["policy_steps"] = np.asarray([steps[0], steps[1] + 1], np.int64)
+    stale = (out / "hopper-medium-expert.hdf5").stat().st_mtime_ns
+    assert main(args) == 0  # a file made from other behaviour policies is made again
+    assert (out / "hopper-medium-expert.hdf5").stat().st_mtime_ns != stale
+    assert read_arrays(out / "hopper-medium-expert.hdf5")[1]["policy_steps"].tolist() == steps.tolist()
     assert main([*args[:-1], "--kinds", "nonsense"]) == 2
