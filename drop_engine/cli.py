@@ -1,5 +1,5 @@
-"""The engine's commands: train, plot, evaluate, collect. A click group that needs nothing above the engine; the `drop`
-command (drop_cli) adds the service's and the remote commands to these."""
+"""The engine's commands: train, plot, diagnose, evaluate, collect. A click group that needs nothing above the
+engine; the `drop` command (drop_cli) adds the service's and the remote commands to these."""
 from __future__ import annotations
 
 import json
@@ -157,6 +157,25 @@ def plot(runs: tuple[str, ...], out: str, title: str) -> int:
         return 2
     Path(out).write_bytes(overlay(curves, title))
     print(out)
+    return 0
+
+
+@engine.command()
+@click.argument("runs", nargs=-1, required=True, metavar="RUN_DIR...")
+@click.option("--every", type=click.IntRange(1), default=10, show_default=True, help="epochs per column")
+@click.option("--key", "keys", multiple=True, help="a metric of metrics.jsonl (repeatable; default: the diagnostics "
+              "of tau, the penalty, Q on data and model rows, the behaviour term, alpha, entropy, model rewards)")
+def diagnose(runs: tuple[str, ...], every: int, keys: tuple[str, ...]) -> int:
+    """Print each run's diagnostics as a markdown table: the mean of each metric over blocks of epochs."""
+    from .run_log import NotARun
+    from .run_summary import DEFAULT_KEYS, diagnostics_markdown
+
+    try:
+        tables = [f"{run}\n\n{diagnostics_markdown(run, every, keys or DEFAULT_KEYS)}" for run in runs]
+    except NotARun as exc:
+        print(f"drop diagnose: {exc}", file=sys.stderr)
+        return 2
+    print("\n\n".join(tables))
     return 0
 
 

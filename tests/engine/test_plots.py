@@ -92,3 +92,28 @@ def test_progress_is_a_bar_only_on_a_terminal():
     assert isinstance(progress_reporter(True, Terminal()), ProgressBar)
     assert isinstance(progress_reporter(True, io.StringIO()), ProgressLine)
     assert type(progress_reporter(False, Terminal())) is Callback
+
+
+def test_diagnose_averages_metrics_by_blocks_of_epochs(tmp_path, capsys):
+    run = _fake_run(tmp_path / "drop-0", "drop", 0, [1.0])
+    config = json.loads((run / "summary.json").read_text())
+    config["config"]["steps_per_epoch"] = 10
+    (run / "summary.json").write_text(json.dumps(config))
+    lines = [{"step": 0, "time": 0, "dice/tau_data_mean": 100.0},  # pretraining: left out
+             {"step": 10, "time": 0, "dice/tau_data_mean": 0.5, "sac/q_data": 1.0},  # epoch 1
+             {"step": 20, "time": 0, "dice/tau_data_mean": 1.5, "sac/q_data": float("nan")},  # epoch 2
+             {"step": 21, "time": 0, "dice/tau_data_mean": 0.25}]  # epoch 3
+    (run / "metrics.jsonl").write_text("".join(json.dumps(m) + "\n" for m in lines))
+
+    assert main(["diagnose", str(run), "--every", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| metric (mean by epochs) | 1-2 | 3-4 |" in out
+    assert "| dice/tau_data_mean | 1 | 0.25 |" in out
+    assert "| sac/q_data | 1 | - |" in out  # a NaN is not a value
+    assert "sac/alpha" not in out  # never reported: no row
+
+    assert main(["diagnose", str(run), "--key", "sac/q_data", "--every", "1"]) == 0
+    assert "| sac/q_data | 1 | - | - |" in capsys.readouterr().out
+    (tmp_path / "empty").mkdir()
+    assert main(["diagnose", str(tmp_path / "empty")]) == 2
+    assert "no metrics.jsonl" in capsys.readouterr().err
