@@ -41,8 +41,19 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 REVISION = 2
 
 
+def bc_setting(steps: int) -> str:
+    """Which behaviour cloning a BC record holds. A record of another clone (before QUALITY.md E20: squared error,
+    20,000 steps) is neither counted nor shown, and its run directory is not this one's."""
+    return f"likelihood-{steps}"
+
+
+def current(record: dict, bc: str) -> bool:
+    return record["algorithm"] != "bc" or record.get("bc") == bc
+
+
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
-    run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{algorithm}-{seed}"
+    name = f"bc-{bc_setting(args.bc_steps)}" if algorithm == "bc" else algorithm
+    run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{name}-{seed}"
     done = run_dir / "result.json"
     if done.exists():
         return json.loads(done.read_text())
@@ -51,7 +62,8 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
     if algorithm == "bc":
         data = load_dataset(data_path, env=env)
         evaluation = evaluate_actor(train_bc(data, args.bc_steps, seed=seed), env, args.episodes, seed=10_000 + seed)
-        record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": []}
+        record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": [],
+                  "bc": bc_setting(args.bc_steps)}
     else:
         overrides = dict(kv.split("=", 1) for kv in args.set)
         cfg = build_config(algorithm, env=env, preset=args.preset, task=kind, overrides=overrides, seed=seed,
@@ -134,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for all runs")
     p.add_argument("--device", default="cpu")
     p.add_argument("--episodes", type=int, default=10, help="evaluation episodes for BC")
-    p.add_argument("--bc-steps", type=int, default=20_000)
+    p.add_argument("--bc-steps", type=int, default=100_000)
     p.add_argument("--runs", default=str(Path.home() / ".cache/drop-rl/bench-runs"))
     p.add_argument("--model-cache", default=str(Path.home() / ".cache/drop-rl/models"),
                    help="trained ensembles shared by DROP, MOPO and MBPO on the same dataset and seed")
@@ -150,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results = out / "paper_table.json"
     same_setting = {"preset": args.preset, "set": sorted(args.set), "revision": REVISION}
+    bc = bc_setting(args.bc_steps)
     kept = json.loads(results.read_text()) if results.exists() else {}
     behaviour: dict[str, dict] = {}
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
@@ -167,11 +180,14 @@ def main(argv: list[str] | None = None) -> int:
             tmp = results.with_suffix(".tmp")  # renamed in whole: a reader never sees half a file
             tmp.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
             tmp.replace(results)
-        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == same_setting), key=key)
+        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == same_setting and current(r, bc)),
+                      key=key)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine}
         overrides = " ".join(same_setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
+                f"BC: a tanh-Gaussian actor fitted by maximum likelihood for {args.bc_steps:,} steps, acting with its "
+                f"mode, {args.episodes} episodes.\n\n"
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
         # Another preset, or a setting with overrides (an ablation), gets a table of its own: never the cpu preset's.
         preset = [] if args.preset == "cpu" else [args.preset]
@@ -188,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             raise SystemExit(f"{path} is missing: run `make bench-data` first")
         behaviour[f"{env}-{kind}"] = describe(path)
-    done = {key(r) for r in on_file(kept.get("records", []), behaviour) if r["setting"] == same_setting}
+    done = {key(r) for r in on_file(kept.get("records", []), behaviour)
+            if r["setting"] == same_setting and current(r, bc)}
     # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
     # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its
     # own ensemble, instead of one waiting for the ensemble the other is training (the cache's lock).

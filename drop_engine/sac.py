@@ -12,6 +12,7 @@ from .config import SACConfig
 from .nn import EnsembleMLP, Standardize, adam, mlp, soft_update
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+ACTION_EDGE = 1 - 1e-6  # float32: atanh of it is 7.25, of 1 infinite
 
 
 class Actor(nn.Module):
@@ -27,17 +28,26 @@ class Actor(nn.Module):
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterised tanh-squashed action and its log-probability."""
         mu, log_std = self(obs)
-        std = log_std.exp()
-        u = mu + std * torch.randn_like(mu)
-        log_prob = (-0.5 * ((u - mu) / std).pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
-        # log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the numerically stable form.
-        log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
-        return torch.tanh(u), log_prob
+        u = mu + log_std.exp() * torch.randn_like(mu)
+        return torch.tanh(u), _squashed_log_prob(u, mu, log_std)
+
+    def log_prob(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """The log-density of given actions, as behaviour cloning by maximum likelihood needs; an action on a tanh
+        bound (a saturated sample) is read just inside it."""
+        mu, log_std = self(obs)
+        return _squashed_log_prob(torch.atanh(act.clamp(-ACTION_EDGE, ACTION_EDGE)), mu, log_std)
 
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
         if deterministic:
             return torch.tanh(self(obs)[0])
         return self.sample(obs)[0]
+
+
+def _squashed_log_prob(u: torch.Tensor, mu: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log pi(tanh(u)) of the tanh-squashed diagonal Gaussian N(mu, exp(log_std)^2)."""
+    log_prob = (-0.5 * ((u - mu) / log_std.exp()).pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+    # log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the numerically stable form.
+    return log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
 
 
 class TwinCritic(nn.Module):

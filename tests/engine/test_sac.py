@@ -1,4 +1,5 @@
 """SAC must learn a one-step continuous task whose optimum is known: a*(s) = 0.5 s."""
+import numpy as np
 import pytest
 import torch
 
@@ -42,6 +43,29 @@ def test_behaviour_cloning_recovers_a_deterministic_policy(hopper_dataset):
     with torch.no_grad():
         pred = actor.act(torch.as_tensor(obs), deterministic=True).numpy()
     assert abs(pred - target).mean() < 0.05
+
+
+def test_behaviour_cloning_finds_a_stochastic_policys_mode_not_its_mean_action():
+    """Data from a tanh-Gaussian policy: the clone acts with that policy's mode tanh(mu(s)), whose distance to the
+    data's mean action E[a|s] (what a squared-error clone fits) is far larger than the clone's error."""
+    from drop_engine.bc import train_bc
+    from drop_engine.data import Dataset
+
+    gen = np.random.default_rng(0)
+    n = 20_000
+    obs = gen.uniform(-1, 1, (n, 1)).astype(np.float32)
+    mu = 1.0 + 1.5 * obs
+    act = np.tanh(mu + gen.normal(size=(n, 1))).astype(np.float32)
+    zeros = np.zeros(n, np.float32)
+    data = Dataset(obs, act, zeros, obs, zeros.astype(bool), zeros.astype(bool))
+    actor = train_bc(data, steps=1500, hidden=(64, 64))
+
+    grid = np.linspace(-0.9, 0.9, 10, dtype=np.float32)[:, None]
+    with torch.no_grad():
+        pred = actor.act(torch.as_tensor(grid), deterministic=True).numpy()
+    mode = np.tanh(1.0 + 1.5 * grid)
+    mean = np.tanh(1.0 + 1.5 * grid + gen.normal(size=(10, 20_000))).mean(1, keepdims=True)
+    assert abs(pred - mode).mean() < 0.03 and abs(mean - mode).mean() > 0.1
 
 
 @pytest.mark.parametrize("bc_weight, expected", [(0.0, 0.5), (10.0, -0.5)])
