@@ -48,6 +48,7 @@ def bc_setting(steps: int) -> str:
 
 
 def current(record: dict, bc: str) -> bool:
+    """A model-based record, or a BC record of the clone `bc`."""
     return record["algorithm"] != "bc" or record.get("bc") == bc
 
 

@@ -16,7 +16,7 @@ def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: flo
 
     Likelihood, not squared error: the data of a stochastic policy (a SAC actor's samples) has the mean action
     E[a|s], pulled inward from the bounds, where the policy's own deterministic action is its mode, and walker2d
-    falls over with the mean (bench/QUALITY.md E20: 25.6 against 38.4 at 100,000 steps, the data 37.8)."""
+    falls over with the mean (bench/QUALITY.md E20: 25.6 against 38.4-50.8 at 100,000 steps, the data 37.8)."""
     torch.manual_seed(seed)
     actor = Actor(data.obs_dim, data.act_dim, hidden)
     norm = Normalizer.fit(data.observations)
