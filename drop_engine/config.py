@@ -76,10 +76,12 @@ class SACConfig(_Strict):
     bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
                              "actor minimises (alpha logp - Q)/mean|Q| + w * mean (tanh(mu(s)) - a)^2 on a real batch; "
                              "0 is plain SAC (the paper)")
-    bc_action: Literal["mean", "sample"] = Field(
+    bc_action: Literal["mean", "sample", "likelihood"] = Field(
         "mean", description="what the behaviour term pulls to the data's action: the deterministic action tanh(mu(s)), "
-                            "as TD3+BC, or a reparameterised sample of the policy, which also keeps its spread near "
-                            "the data's (the stochastic policy is what rollouts and DICE see)")
+                            "as TD3+BC; a reparameterised sample of the policy, which also narrows its spread (the "
+                            "stochastic policy is what rollouts and DICE see); or the policy's whole density, by the "
+                            "data action's negative log-likelihood per dimension, which spreads the policy over the "
+                            "data's actions (bench/QUALITY.md E3, E22)")
     critic_layer_norm: bool = Field(
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "

@@ -130,14 +130,19 @@ class SAC(nn.Module):
 
     def _actor_loss(self, alpha, logp, q_new, real) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """SAC's actor loss, or with `bc_weight` > 0 TD3+BC's form: the Q term scaled by 1/mean|Q| so the behaviour
-        term's weight means the same at any reward scale, plus the squared distance to the data's actions."""
+        term's weight means the same at any reward scale, plus the squared distance to the data's actions, or their
+        negative log-likelihood under the policy."""
         loss = (alpha * logp - q_new).mean()
         if self.cfg.bc_weight == 0 or real is None:
             return loss, {}
         real_obs, real_act = real
+        scaled = loss / q_new.detach().abs().mean().clamp_min(1e-6)
+        if self.cfg.bc_action == "likelihood":
+            # Per action dimension, as the squared error is, so one weight reads alike for both forms.
+            bc = -self.actor.log_prob(real_obs, real_act).mean() / real_act.shape[-1]
+            return scaled + self.cfg.bc_weight * bc, {"sac/bc_nll": bc.detach()}
         pulled = self.actor.sample(real_obs)[0] if self.cfg.bc_action == "sample" else self.actor.act(real_obs, True)
         bc = (pulled - real_act).pow(2).mean()
-        scaled = loss / q_new.detach().abs().mean().clamp_min(1e-6)
         return scaled + self.cfg.bc_weight * bc, {"sac/bc_mse": bc.detach()}
 
     def optim_state(self) -> dict:

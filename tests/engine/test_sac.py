@@ -104,6 +104,27 @@ def test_behaviour_term_on_samples_also_holds_the_spread():
     assert spread["sample"] < 0.5 * spread["mean"], spread
 
 
+def test_behaviour_term_on_the_likelihood_spreads_the_policy_over_the_data():
+    """Data actions spread around -0.5, the reward's optimum at 0.5: the likelihood term keeps the policy's density
+    high at the data's actions, where the mean term leaves the spread to the entropy bonus and the sample term
+    narrows it; the density at the data is what a ratio pi/beta on the data reads (bench/QUALITY.md E3)."""
+    data_nll = {}
+    for mode in ("mean", "sample", "likelihood"):
+        torch.manual_seed(0)
+        sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=10.0,
+                                  bc_action=mode))
+        for _ in range(800):
+            s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
+            r = -(a[:, 0] - 0.5).pow(2) * 10
+            data_act = torch.tanh(-0.55 + 0.6 * torch.randn(128, 1))
+            metrics = sac.update(s, a, r, s, torch.ones(128), real=(s, data_act), n_real=64)
+        assert ("sac/bc_nll" in metrics) == (mode == "likelihood")
+        with torch.no_grad():
+            s = torch.rand(4096, 1) * 2 - 1
+            data_nll[mode] = -sac.actor.log_prob(s, torch.tanh(-0.55 + 0.6 * torch.randn(4096, 1))).mean().item()
+    assert data_nll["likelihood"] < min(data_nll["mean"], data_nll["sample"]) - 0.5, data_nll
+
+
 def test_critic_layer_norm_bounds_extrapolation():
     """With layer norm every hidden row has unit scale, so Q stays within a bound set by the output layer however far
     the input lies from the data; a plain ReLU critic's Q grows with the input's scale."""
