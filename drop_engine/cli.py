@@ -208,8 +208,8 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
 @click.option("--out", required=True, help="output directory; an existing one is resumed")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--steps", type=int, default=None,
-              help="online SAC env steps, one update each (default: 120,000 for hopper, about 20 min on 2 idle "
-                   "cores; 200,000 for walker2d and halfcheetah, about 40 min on one core)")
+              help="online SAC env steps, one update each (default: 120,000 for hopper, about 30 min on one "
+                   "core; 200,000 for walker2d and halfcheetah, about 45 min)")
 @click.option("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, medium, "
               "expert; medium-expert holds twice this; default 200,000)")
 @click.option("--kinds", default=None,
@@ -222,11 +222,13 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
 @click.option("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
 @click.option("--env-version", default="v4", show_default=True, type=ENV_VERSIONS)
 @click.option("--num-envs", type=int, default=8, show_default=True, help="envs stepped side by side while recording")
-@click.option("--threads", type=int, default=None, help="torch intra-op threads")
+@click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
+              help="torch intra-op threads; part of what makes the files: the same seed at another thread count sums "
+                   "in another order and, over 100,000s of online steps, makes other datasets (bench/QUALITY.md E22)")
 @click.option("--no-progress", is_flag=True, help="no progress bars")
 def collect(env: str, out: str, seed: int, steps: int | None, transitions: int | None, kinds: str | None,
             warmup: int, eval_every: int, eval_episodes: int, medium_return: float | None, env_version: str,
-            num_envs: int, threads: int | None, no_progress: bool) -> int:
+            num_envs: int, threads: int, no_progress: bool) -> int:
     """Make D4RL-style datasets by training SAC online in the real env. SIGINT or SIGTERM stop it at a step boundary
     with a checkpoint."""
     import signal
@@ -237,8 +239,7 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int |
     from .collect import DEFAULT_TRANSITIONS, KINDS, CollectConfig, collect_datasets, summary_table
     from .online import OnlineConfig
 
-    if threads:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
     chosen = tuple(kinds.split(",")) if kinds else KINDS
     unknown = [k for k in chosen if k not in KINDS]
     if unknown:

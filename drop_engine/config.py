@@ -81,7 +81,7 @@ class SACConfig(_Strict):
                             "as TD3+BC; a reparameterised sample of the policy, which also narrows its spread (the "
                             "stochastic policy is what rollouts and DICE see); or the policy's whole density, by the "
                             "data action's negative log-likelihood per dimension, which spreads the policy over the "
-                            "data's actions (bench/QUALITY.md E3, E22)")
+                            "data's actions (bench/QUALITY.md E3, E23)")
     critic_layer_norm: bool = Field(
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "
