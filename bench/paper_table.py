@@ -38,7 +38,8 @@ ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
 CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/bench-data"))
 # Bumped when a preset's meaning changes, so runs of the old meaning are kept apart and never counted as the new.
 # 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
-REVISION = 2
+# 3: the behaviour term on the data actions' likelihood instead of the mean action's squared error (E23).
+REVISION = 3
 
 
 def bc_setting(steps: int) -> str:

@@ -199,7 +199,8 @@ def dataset_settings(env: str, task: str | None) -> dict[str, Any]:
 
 # The cpu preset's behaviour-term weight per dataset kind (bench/QUALITY.md): strong where the data is one competent
 # policy, weak where it is a mix of many (medium-replay) or no policy at all (random), so the model can lift the
-# policy above the data there.
+# policy above the data there. The term is the data actions' likelihood (E23): it keeps the stochastic policy, which
+# the rollouts and DICE see, spread over the data's actions, so the ratio on the data stays normalised.
 CPU_BC_WEIGHT = {"random": 0.1, "medium": 0.4, "medium-replay": 0.1, "medium-expert": 0.4}
 
 
@@ -214,7 +215,8 @@ def preset_settings(preset: str, env: str, task: str | None = None) -> dict[str,
             "epochs": 90, "eval_every": 10, "eval_episodes": 10, "checkpoint_every": 10,
             "dynamics": {"max_epochs": 60},
             "rollout": {"batch_size": 10_000},
-            "sac": {"bc_weight": CPU_BC_WEIGHT.get(task or "medium", CPU_BC_WEIGHT["medium"])},
+            "sac": {"bc_weight": CPU_BC_WEIGHT.get(task or "medium", CPU_BC_WEIGHT["medium"]),
+                    "bc_action": "likelihood"},
             "dice": {"positive": True, "discount": "horizon"},
             "penalty": {"bonus": False},
         }

@@ -47,6 +47,7 @@ def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
     cpu = {task: build_config(algo, env="hopper", preset="cpu", task=task)
            for algo in ("drop", "mopo", "mbpo") for task in ("medium", "medium-replay")}
     assert cpu["medium"].sac.bc_weight > cpu["medium-replay"].sac.bc_weight > 0
+    assert {c.sac.bc_action for c in cpu.values()} == {"likelihood"}
     drop = build_config("drop", env="hopper", preset="cpu", task="medium")
     assert drop.dice.positive and not drop.penalty.bonus and drop.eval_episodes == 10
     assert drop.dynamics.max_seconds is None and drop.dynamics.max_epochs
