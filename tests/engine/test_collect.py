@@ -141,7 +141,12 @@ def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
     out = tmp_path / "out"
     args = ["collect", "--env", "hopper", "--out", str(out), "--steps", "250", "--warmup", "200", "--eval-every", "125",
             "--eval-episodes", "1", "--transitions", "400", "--kinds", "random,medium-expert", "--no-progress"]
-    assert main(args) == 0
+    torch.set_num_threads(2)
+    try:
+        assert main(args) == 0
+        assert torch.get_num_threads() == 1  # the default: a thread count is part of the files (QUALITY.md E22)
+    finally:
+        torch.set_num_threads(1)
     table = capsys.readouterr().out
     assert "random" in table and "medium-expert" in table and "norm. score" in table
     assert sorted(p.name for p in out.glob("*.hdf5")) == ["hopper-medium-expert.hdf5", "hopper-random.hdf5"]
