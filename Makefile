@@ -23,13 +23,13 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
-# D4RL-style benchmark datasets (random, medium, medium-replay, medium-expert) made by `drop collect`, one torch
-# thread each and two envs at a time, into a cache outside the repo: about 30 min for hopper and 50 min each for
-# walker2d and halfcheetah on a 2-core machine. Rerunning resumes where it stopped.
+# D4RL-style benchmark datasets (random, medium, medium-replay, medium-expert) made by `drop collect` (one torch
+# thread each), BENCH_JOBS envs at a time, into a cache outside the repo (times: README). Rerunning resumes.
 BENCH_ENVS ?= hopper walker2d halfcheetah
+BENCH_JOBS ?= 2
 bench-data: $(STAMP)
 	out="$${DROP_BENCH_DATA:-$$HOME/.cache/drop-rl/bench-data}"; \
-	printf '%s\n' $(BENCH_ENVS) | xargs -P 2 -I ENV $(BIN)/drop collect --env ENV --out "$$out" --threads 1 \
+	printf '%s\n' $(BENCH_ENVS) | xargs -P $(BENCH_JOBS) -I {} $(BIN)/drop collect --env {} --out "$$out" \
 		--no-progress --kinds random,medium,medium-replay,medium-expert
 
 # Benchmarks (on demand, never in CI); results land in bench/results/.

@@ -57,10 +57,12 @@ class OnlineConfig:
         return self.medium_return if self.medium_return is not None else get_env(self.env).expert_score / 3.0
 
     def identity(self) -> dict:
-        """The settings a resumed run must share with the checkpoint (steps may grow: training just continues)."""
+        """The settings a resumed run must share with the checkpoint (steps may grow: training just continues), and
+        the torch thread count in use: another one sums in another order and makes other files (QUALITY.md E22)."""
         out = asdict(self)
         out.pop("steps")
         out["sac"] = self.sac.model_dump()
+        out["threads"] = torch.get_num_threads()
         return out
 
 
@@ -224,8 +226,9 @@ class OnlineSAC:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"{self.checkpoint_path}: checkpoint format {state.get('format')} is not "
                              f"{CHECKPOINT_FORMAT}")
-        if state["config"] != self.cfg.identity():
-            diff = sorted(k for k in state["config"] if state["config"][k] != self.cfg.identity().get(k))
+        now = self.cfg.identity()
+        if state["config"] != now:
+            diff = sorted(k for k in state["config"].keys() | now.keys() if state["config"].get(k) != now.get(k))
             raise ValueError(f"{self.checkpoint_path}: made with different settings ({', '.join(diff)}); "
                              "use another --out")
         if state["step"] > self.cfg.steps:

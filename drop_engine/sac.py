@@ -138,12 +138,13 @@ class SAC(nn.Module):
         real_obs, real_act = real
         scaled = loss / q_new.detach().abs().mean().clamp_min(1e-6)
         if self.cfg.bc_action == "likelihood":
-            # Per action dimension, as the squared error is, so one weight reads alike for both forms.
-            bc = -self.actor.log_prob(real_obs, real_act).mean() / real_act.shape[-1]
-            return scaled + self.cfg.bc_weight * bc, {"sac/bc_nll": bc.detach()}
-        pulled = self.actor.sample(real_obs)[0] if self.cfg.bc_action == "sample" else self.actor.act(real_obs, True)
-        bc = (pulled - real_act).pow(2).mean()
-        return scaled + self.cfg.bc_weight * bc, {"sac/bc_mse": bc.detach()}
+            # Per action dimension, so the weight does not grow with the action count (its value: QUALITY.md E23).
+            bc, name = -self.actor.log_prob(real_obs, real_act).mean() / real_act.shape[-1], "sac/bc_nll"
+        else:
+            pulled = (self.actor.sample(real_obs)[0] if self.cfg.bc_action == "sample"
+                      else self.actor.act(real_obs, True))
+            bc, name = (pulled - real_act).pow(2).mean(), "sac/bc_mse"
+        return scaled + self.cfg.bc_weight * bc, {name: bc.detach()}
 
     def optim_state(self) -> dict:
         return {name: getattr(self, name).state_dict() for name in ("actor_optim", "critic_optim", "alpha_optim")}

@@ -135,18 +135,26 @@ def test_resume_continues_the_same_run(tmp_path):
     assert [s.to_dict() for s in straight.snapshots] == [s.to_dict() for s in resumed.snapshots]
     with pytest.raises(ValueError, match="different settings"):
         OnlineSAC(small_online(steps=700, warmup=200, eval_every=350, seed=1), tmp_path / "b")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(threads + 1)
+    try:
+        with pytest.raises(ValueError, match=r"different settings \(threads\)"):
+            OnlineSAC(cfg, tmp_path / "b")
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
     out = tmp_path / "out"
     args = ["collect", "--env", "hopper", "--out", str(out), "--steps", "250", "--warmup", "200", "--eval-every", "125",
             "--eval-episodes", "1", "--transitions", "400", "--kinds", "random,medium-expert", "--no-progress"]
+    threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
         assert main(args) == 0
         assert torch.get_num_threads() == 1  # the default: a thread count is part of the files (QUALITY.md E22)
     finally:
-        torch.set_num_threads(1)
+        torch.set_num_threads(threads)
     table = capsys.readouterr().out
     assert "random" in table and "medium-expert" in table and "norm. score" in table
     assert sorted(p.name for p in out.glob("*.hdf5")) == ["hopper-medium-expert.hdf5", "hopper-random.hdf5"]

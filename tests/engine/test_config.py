@@ -44,9 +44,10 @@ def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
     paper = build_config("drop", env="hopper", preset="paper", task="medium")
     assert paper.sac.bc_weight == 0 and not paper.dice.positive and paper.penalty.bonus
     assert paper.dice_discount == paper.sac.gamma
-    cpu = {task: build_config(algo, env="hopper", preset="cpu", task=task)
+    cpu = {(algo, task): build_config(algo, env="hopper", preset="cpu", task=task)
            for algo in ("drop", "mopo", "mbpo") for task in ("medium", "medium-replay")}
-    assert cpu["medium"].sac.bc_weight > cpu["medium-replay"].sac.bc_weight > 0
+    for algo in ("drop", "mopo", "mbpo"):
+        assert cpu[algo, "medium"].sac.bc_weight > cpu[algo, "medium-replay"].sac.bc_weight > 0
     assert {c.sac.bc_action for c in cpu.values()} == {"likelihood"}
     drop = build_config("drop", env="hopper", preset="cpu", task="medium")
     assert drop.dice.positive and not drop.penalty.bonus and drop.eval_episodes == 10

@@ -86,17 +86,24 @@ def test_behaviour_term_holds_the_actor_at_the_data(bc_weight, expected):
     assert ("sac/bc_mse" in metrics) == (bc_weight > 0)
 
 
+def _trained_against_data(mode: str, data_actions) -> tuple[SAC, dict]:
+    """A 1-D SAC whose reward peaks at a = 0.5, with a strong behaviour term of the given form toward
+    `data_actions(n)`."""
+    torch.manual_seed(0)
+    sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=10.0,
+                              bc_action=mode))
+    for _ in range(800):
+        s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
+        r = -(a[:, 0] - 0.5).pow(2) * 10
+        metrics = sac.update(s, a, r, s, torch.ones(128), real=(s, data_actions(128)), n_real=64)
+    return sac, metrics
+
+
 def test_behaviour_term_on_samples_also_holds_the_spread():
     """Data with one action: a term on the policy's samples narrows them around it; one on the mean does not."""
     spread = {}
     for mode in ("mean", "sample"):
-        torch.manual_seed(0)
-        sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=10.0,
-                                  bc_action=mode))
-        for _ in range(800):
-            s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
-            r = -(a[:, 0] - 0.5).pow(2) * 10
-            sac.update(s, a, r, s, torch.ones(128), real=(s, torch.full((128, 1), -0.5)), n_real=64)
+        sac, _ = _trained_against_data(mode, lambda n: torch.full((n, 1), -0.5))
         with torch.no_grad():
             samples = sac.actor.act(torch.zeros(4096, 1))
             assert (sac.actor.act(torch.zeros(1, 1), deterministic=True) + 0.5).abs().item() < 0.15, mode
@@ -108,21 +115,30 @@ def test_behaviour_term_on_the_likelihood_spreads_the_policy_over_the_data():
     """Data actions spread around -0.5, the reward's optimum at 0.5: the likelihood term keeps the policy's density
     high at the data's actions, where the mean term leaves the spread to the entropy bonus and the sample term
     narrows it; the density at the data is what a ratio pi/beta on the data reads (bench/QUALITY.md E3)."""
+    def data_actions(n: int) -> torch.Tensor:
+        return torch.tanh(-0.55 + 0.6 * torch.randn(n, 1))
+
     data_nll = {}
     for mode in ("mean", "sample", "likelihood"):
-        torch.manual_seed(0)
-        sac = SAC(1, 1, SACConfig(hidden=(64, 64), batch_size=128, actor_lr=1e-3, critic_lr=1e-3, bc_weight=10.0,
-                                  bc_action=mode))
-        for _ in range(800):
-            s, a = torch.rand(128, 1) * 2 - 1, torch.rand(128, 1) * 2 - 1
-            r = -(a[:, 0] - 0.5).pow(2) * 10
-            data_act = torch.tanh(-0.55 + 0.6 * torch.randn(128, 1))
-            metrics = sac.update(s, a, r, s, torch.ones(128), real=(s, data_act), n_real=64)
+        sac, metrics = _trained_against_data(mode, data_actions)
         assert ("sac/bc_nll" in metrics) == (mode == "likelihood")
         with torch.no_grad():
-            s = torch.rand(4096, 1) * 2 - 1
-            data_nll[mode] = -sac.actor.log_prob(s, torch.tanh(-0.55 + 0.6 * torch.randn(4096, 1))).mean().item()
+            data_nll[mode] = -sac.actor.log_prob(torch.rand(4096, 1) * 2 - 1, data_actions(4096)).mean().item()
     assert data_nll["likelihood"] < min(data_nll["mean"], data_nll["sample"]) - 0.5, data_nll
+
+
+def test_likelihood_term_is_per_dimension_and_finite_at_saturated_actions():
+    """Collected SAC data holds actions of exactly +-1 (float32 tanh rounds there): the term reads them just inside
+    the bound, so the step stays finite, and it is the data's mean negative log-likelihood per action dimension."""
+    torch.manual_seed(0)
+    sac = SAC(4, 3, SACConfig(hidden=(32, 32), batch_size=64, bc_weight=0.4, bc_action="likelihood"))
+    obs, act = torch.randn(64, 4), torch.rand(64, 3) * 2 - 1
+    act[:8] = torch.sign(act[:8])
+    with torch.no_grad():
+        expected = -sac.actor.log_prob(obs, act).mean().item() / 3
+    metrics = sac.update(obs, act, torch.zeros(64), obs, torch.zeros(64), real=(obs, act))
+    assert metrics["sac/bc_nll"].item() == pytest.approx(expected, rel=1e-5)
+    assert all(torch.isfinite(p.grad).all() and torch.isfinite(p).all() for p in sac.actor.parameters())
 
 
 def test_critic_layer_norm_bounds_extrapolation():
