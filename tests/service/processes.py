@@ -13,6 +13,7 @@ from pathlib import Path
 
 import httpx
 
+from app.serving.embedded import WORKER_STOP_S
 from drop_client import DropClient
 from kernel.settings import Settings
 
@@ -150,7 +151,9 @@ class Serve:
         wait_ready(drop.http, self.proc, self.log_path)
         return drop
 
-    def stop(self, sig: signal.Signals = signal.SIGINT, timeout: float = 60) -> int:
+    def stop(self, sig: signal.Signals = signal.SIGINT, timeout: float = WORKER_STOP_S + 30) -> int:
+        """Longer than `drop serve` gives its worker to stop before killing it: on a loaded machine the worker's niced
+        pool can take that long, and `drop serve` must get to exit on its own."""
         self.proc.send_signal(sig)
         try:
             return self.proc.wait(timeout)
