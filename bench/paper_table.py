@@ -9,9 +9,8 @@ over seeds, beside the behaviour policy's own score.
 Finished runs are kept in bench/results/paper_table.json, so the table fills up across machines and sessions: a run
 already recorded there with the same preset, overrides and dataset content is not repeated. `make bench-data` is
 seeded, but the same seed collects other files on other CPUs or at another thread count (the floating-point sums
-differ, QUALITY.md E9 and E22), so every record
-carries its dataset's content hash and the table shows, for each dataset, only the runs on the file whose behaviour
-score it prints.
+differ, QUALITY.md E9 and E22), so every record carries its dataset's content hash and the table shows, for each
+dataset, only the runs on the file whose behaviour score it prints.
 """
 from __future__ import annotations
 
