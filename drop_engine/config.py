@@ -82,6 +82,11 @@ class SACConfig(_Strict):
                             "stochastic policy is what rollouts and DICE see); or the policy's whole density, by the "
                             "data action's negative log-likelihood per dimension, which spreads the policy over the "
                             "data's actions (bench/QUALITY.md E3, E23)")
+    actor_lr_schedule: Literal["constant", "cosine"] = Field(
+        "constant", description="cosine: the actor's learning rate falls from actor_lr to 0 along a half cosine over "
+                                "the run, set per epoch, as OfflineRL-Kit's MOPO, MOBILE and COMBO; the last "
+                                "evaluations then see a settled actor instead of one still swinging between epochs "
+                                "(bench/QUALITY.md E25); constant is the paper's")
     critic_layer_norm: bool = Field(
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "

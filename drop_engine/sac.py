@@ -76,6 +76,13 @@ class SAC(nn.Module):
         self.critic_optim = adam(self.critic.parameters(), cfg.critic_lr)
         self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)
 
+    def anneal(self, progress: float) -> None:
+        """Set the actor's learning rate for the point `progress` in [0, 1) of the run. It is a function of where the
+        run is, not of an optimiser's step count, so a resumed run sets the same rate as one never stopped."""
+        if self.cfg.actor_lr_schedule == "cosine":
+            for group in self.actor_optim.param_groups:
+                group["lr"] = self.cfg.actor_lr * 0.5 * (1 + math.cos(math.pi * progress))
+
     def set_obs_normalizer(self, mean, std) -> None:
         for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
             module.set(mean, std)

@@ -356,6 +356,7 @@ class Trainer:
         cfg = self.cfg
         total = cfg.epochs * cfg.steps_per_epoch
         start = time.perf_counter()
+        self.sac.anneal(self.epoch / cfg.epochs)
         try:
             while self.step_in_epoch < cfg.steps_per_epoch:
                 if self.cb.should_stop():

@@ -153,3 +153,18 @@ def test_critic_layer_norm_bounds_extrapolation():
             growth[layer_norm] = (critic(obs * 1e4, act).abs().max() / critic(obs, act).abs().max()).item()
     assert growth[False] > 100
     assert growth[True] < 10
+
+
+def test_cosine_schedule_takes_only_the_actor_lr_to_zero():
+    """The actor's rate follows lr * (1 + cos(pi * progress)) / 2 and the critics' and temperature's stay; with the
+    constant schedule (the paper's) nothing changes."""
+    rates = {}
+    for schedule in ("constant", "cosine"):
+        sac = SAC(3, 2, SACConfig(hidden=(16, 16), actor_lr=4e-4, actor_lr_schedule=schedule))
+        for progress in (0.0, 0.5, 0.9):
+            sac.anneal(progress)
+            rates[schedule, progress] = [g["lr"] for o in (sac.actor_optim, sac.critic_optim, sac.alpha_optim)
+                                         for g in o.param_groups]
+    assert {tuple(r) for (schedule, _), r in rates.items() if schedule == "constant"} == {(4e-4, 3e-4, 3e-4)}
+    for progress, actor in ((0.0, 4e-4), (0.5, 2e-4), (0.9, 4e-4 * (1 - 0.9511) / 2)):
+        assert rates["cosine", progress] == pytest.approx([actor, 3e-4, 3e-4], rel=1e-3)

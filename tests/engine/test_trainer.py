@@ -2,6 +2,7 @@
 policies that need only torch."""
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -121,8 +122,9 @@ def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_datase
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     whole = Recorder()
-    # An averaged DICE estimator too: its average is state a resumed run must restore, or its penalties differ.
-    cfg = _config("drop", epochs=3, dice={"average": 0.5})
+    # An averaged DICE estimator too: its average is state a resumed run must restore, or its penalties differ; and
+    # the annealed actor rate, which a resumed run must set as the uninterrupted one did.
+    cfg = _config("drop", epochs=3, dice={"average": 0.5}, sac={"actor_lr_schedule": "cosine"})
     trainer = Trainer(hopper_dataset, cfg, tmp_path_factory.mktemp("whole"), whole)
     trainer.run()
     return trainer, whole
@@ -133,6 +135,13 @@ def test_an_averaged_estimator_reports_what_the_penalty_reads(uninterrupted):
     averaged = [m["dice/tau_avg_data_mean"] for _, m in whole.metrics if "dice/tau_avg_data_mean" in m]
     latest = [m["dice/tau_data_mean"] for _, m in whole.metrics if "dice/tau_data_mean" in m]
     assert averaged and len(averaged) == len(latest) and all(a > 0 for a in averaged)
+
+
+def test_the_actor_rate_is_annealed_by_epoch(uninterrupted):
+    """The last epoch (2 of 3) trained at the half-cosine's rate for 2/3 of the run."""
+    a, _ = uninterrupted
+    expected = a.cfg.sac.actor_lr * 0.5 * (1 + math.cos(math.pi * 2 / 3))
+    assert a.sac.actor_optim.param_groups[0]["lr"] == pytest.approx(expected)
 
 
 @pytest.mark.parametrize("phase", ["sac", "dice", "rollout", "evaluate"])
