@@ -8,15 +8,17 @@ from .data import Dataset, Normalizer
 from .evaluation import Evaluation, evaluate
 from .nn import adam
 from .sac import Actor
+from .stopping import StopFlag, check, never
 
 
 def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0,
-             hidden: tuple[int, ...] = (256, 256)) -> Actor:
+             hidden: tuple[int, ...] = (256, 256), should_stop: StopFlag = never) -> Actor:
     """A tanh-Gaussian actor fitted to the dataset's actions by maximum likelihood; it acts with its mode tanh(mu(s)).
 
     Likelihood, not squared error: the data of a stochastic policy (a SAC actor's samples) has the mean action
     E[a|s], pulled inward from the bounds, where the policy's own deterministic action is its mode, and walker2d
-    falls over with the mean (bench/QUALITY.md E20: 25.6 against 38.4-50.8 at 100,000 steps, the data 37.8)."""
+    falls over with the mean (bench/QUALITY.md E20: 25.6 against 38.4-50.8 at 100,000 steps, the data 37.8).
+    `should_stop` is asked every 100 steps and raises `Stopped`."""
     torch.manual_seed(seed)
     actor = Actor(data.obs_dim, data.act_dim, hidden)
     norm = Normalizer.fit(data.observations)
@@ -25,13 +27,31 @@ def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: flo
     act = torch.as_tensor(data.actions)
     optim = adam(actor.parameters(), lr)
     gen = torch.Generator().manual_seed(seed)
-    for _ in range(steps):
+    for step in range(steps):
+        if step % 100 == 0:
+            check(should_stop)
         idx = torch.randint(0, len(obs), (batch_size,), generator=gen)
         loss = -actor.log_prob(obs[idx], act[idx]).mean()
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
     return actor
+
+
+def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, samples: int = 10_000,
+                      should_stop: StopFlag = never) -> float:
+    """An estimate, in nats, of the entropy of the policy that chose the data's actions: their mean negative
+    log-likelihood under a tanh-Gaussian fitted to them (`train_bc`), over a fixed subsample of rows.
+
+    Where the data came from one stochastic policy this is its entropy plus the fit's KL to it, so it errs high
+    (bench/QUALITY.md E28 measures it against the behaviour policies the bench files were recorded with). The fit draws
+    from a forked torch RNG, so a run that asks for it draws the same numbers after it as one that does not."""
+    with torch.random.fork_rng():
+        actor = train_bc(data, steps, seed=seed, should_stop=should_stop)
+    rows = np.random.default_rng(seed).choice(len(data), size=min(samples, len(data)), replace=False)
+    with torch.no_grad():
+        nll = -actor.log_prob(torch.as_tensor(data.observations[rows]), torch.as_tensor(data.actions[rows]))
+    return float(nll.mean())
 
 
 def evaluate_actor(actor: Actor, env: str, episodes: int, seed: int, version: str = "v4") -> Evaluation:

@@ -72,7 +72,13 @@ class SACConfig(_Strict):
     tau: float = Field(5e-3, gt=0, le=1)
     batch_size: BatchSize = 256
     real_ratio: float = Field(0.05, ge=0, le=1)
-    target_entropy: float | None = Field(None, ge=-1_000, le=1_000, description="default -|A|")
+    target_entropy: Annotated[float, Field(ge=-1_000, le=1_000)] | Literal["data"] | None = Field(
+        None, description="the entropy the temperature holds the policy at; default -|A|. 'data': the lower of -|A| "
+                          "and the data's behaviour entropy, estimated before training by a maximum-likelihood fit "
+                          "(`behaviour_fit_steps`): a policy broader than the data samples actions the data does not "
+                          "have, and the density ratio on the data is then small (bench/QUALITY.md E28)")
+    behaviour_fit_steps: int = Field(5_000, ge=1, le=100_000, description="steps of the fit that estimates the "
+                                     "data's behaviour entropy, with target_entropy='data'")
     bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
                              "actor minimises (alpha logp - Q)/mean|Q| + w * the term `bc_action` picks, on a real "
                              "batch; 0 is plain SAC (the paper)")

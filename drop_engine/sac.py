@@ -71,7 +71,8 @@ class SAC(nn.Module):
         self.critic = TwinCritic(obs_dim, act_dim, cfg.hidden, cfg.critic_layer_norm)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = nn.Parameter(torch.zeros(()))
-        self.target_entropy = float(cfg.target_entropy if cfg.target_entropy is not None else -act_dim)
+        # 'data' starts at -|A| too; the trainer lowers it to the data's estimated entropy before the first update.
+        self.target_entropy = float(-act_dim if cfg.target_entropy in (None, "data") else cfg.target_entropy)
         self.actor_optim = adam(self.actor.parameters(), cfg.actor_lr)
         self.critic_optim = adam(self.critic.parameters(), cfg.critic_lr)
         self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)

@@ -1,7 +1,8 @@
 """Algorithm 1 of DROP, with MOPO and MBPO as penalties in the same loop; checkpoints and exact resume.
 
 First the dynamics ensemble is trained, or fetched from a model cache shared between runs (`model_cache.py`); it has
-RNG streams of its own, so the rest of the run draws the same numbers either way.
+RNG streams of its own, so the rest of the run draws the same numbers either way. With `sac.target_entropy='data'`
+the data's behaviour entropy is then estimated, once, from a forked RNG stream.
 
 Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0), roll the policy out from
 `rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .bc import behaviour_entropy
 from .callbacks import Callback
 from .checkpoint import load_latest, save_checkpoint
 from .config import TrainConfig
@@ -43,6 +45,7 @@ from .sac import SAC, Actor
 from .scores import Which, summarize
 from .stopping import Stopped, check
 
+ONCE = ("dynamics", "behaviour_fit")  # timed phases before the first epoch, not per epoch
 CHECKPOINT_FORMAT = 2  # 2: the best actor snapshot
 READABLE_FORMATS = (1, 2)  # a run stopped before the upgrade resumes; its earlier best weights were not kept
 
@@ -131,6 +134,7 @@ class Trainer:
         self.best: BestActor | None = None
         self.dynamics_report: DynamicsReport | None = None
         self.dynamics_source: dict | None = None  # cache_key, from_cache, cache_path
+        self.behaviour_entropy: float | None = None  # the data's, estimated once when target_entropy is 'data'
         self.metric_sums: dict[str, torch.Tensor] = {}
         self.metric_count = 0
         self.timings: dict[str, float] = defaultdict(float)
@@ -157,7 +161,7 @@ class Trainer:
             "epoch_started": self.epoch_started,
             "dynamics": self.model.state_dict(),
             "dynamics_report": asdict(self.dynamics_report) if self.dynamics_report else None,
-            "dynamics_source": self.dynamics_source,
+            "dynamics_source": self.dynamics_source, "behaviour_entropy": self.behaviour_entropy,
             "sac": self.sac.state_dict(), "sac_optim": self.sac.optim_state(),
             "dice": self.dice.state_dict() if self.dice else None,
             "dice_optim": self.dice.optim_state() if self.dice else None,
@@ -176,6 +180,7 @@ class Trainer:
         self.model.load_state_dict(state["dynamics"])
         self.dynamics_report = DynamicsReport(**state["dynamics_report"]) if state["dynamics_report"] else None
         self.dynamics_source = state.get("dynamics_source")  # absent from format 1
+        self._set_behaviour_entropy(state.get("behaviour_entropy"))  # absent before target_entropy='data'
         self.sac.load_state_dict(state["sac"])
         self.sac.load_optim_state(state["sac_optim"])
         if self.dice is not None:
@@ -227,6 +232,27 @@ class Trainer:
             self.cb.on_progress("dynamics", 0, report.epochs, report.epochs)
         self._report({"dynamics/elite_holdout_mse": float(np.mean(sorted(report.holdout_mse)[: len(report.elites)])),
                       "dynamics/epochs": float(report.epochs), "dynamics/from_cache": float(from_cache)}, 0)
+        return True
+
+    def _set_behaviour_entropy(self, value: float | None) -> None:
+        self.behaviour_entropy = value
+        if value is not None:
+            self.sac.target_entropy = min(-float(self.data.act_dim), value)
+
+    def fit_target_entropy(self) -> bool:
+        """With target_entropy 'data', estimate the data's behaviour entropy (once: it is checkpointed) and hold the
+        policy at no more than it; False if the caller stopped the fit (nothing of it is kept then)."""
+        if self.cfg.sac.target_entropy != "data" or self.behaviour_entropy is not None:
+            return True
+        start = time.perf_counter()
+        try:
+            value = behaviour_entropy(self.data, self.cfg.sac.behaviour_fit_steps, self.cfg.seed,
+                                      should_stop=self.cb.should_stop)
+        except Stopped:
+            return False
+        self.timings["behaviour_fit"] += time.perf_counter() - start
+        self._set_behaviour_entropy(value)
+        self._report({"sac/behaviour_entropy": value, "sac/target_entropy": self.sac.target_entropy}, 0)
         return True
 
     @torch.no_grad()
@@ -405,12 +431,14 @@ class Trainer:
             if not self.train_dynamics():
                 return self._result("stopped")
             self.checkpoint()
+        if not self.fit_target_entropy():
+            return self._result("stopped", checkpoint=str(self.checkpoint()))
         while self.epoch < cfg.epochs:
             epoch_start, before = time.perf_counter(), dict(self.timings)
             if not self._epoch():
                 return self._result("stopped", checkpoint=str(self.checkpoint()))
             self.timings["epochs"] += time.perf_counter() - epoch_start
-            self._report({f"time/{k}": v - before.get(k, 0.0) for k, v in self.timings.items() if k != "dynamics"},
+            self._report({f"time/{k}": v - before.get(k, 0.0) for k, v in self.timings.items() if k not in ONCE},
                          self.global_step)
             if self.epoch % cfg.checkpoint_every == 0 or self.epoch == cfg.epochs:
                 self.checkpoint()

@@ -28,6 +28,7 @@ def test_sac_learns_known_optimum():
 def test_target_entropy_default_and_override():
     assert SAC(3, 4, SACConfig()).target_entropy == -4.0
     assert SAC(3, 4, SACConfig(target_entropy=-3.0)).target_entropy == -3.0
+    assert SAC(3, 4, SACConfig(target_entropy="data")).target_entropy == -4.0  # until the trainer estimates it
 
 
 def test_behaviour_cloning_recovers_a_deterministic_policy(hopper_dataset):
@@ -66,6 +67,33 @@ def test_behaviour_cloning_finds_a_stochastic_policys_mode_not_its_mean_action()
     mode = np.tanh(1.0 + 1.5 * grid)
     mean = np.tanh(1.0 + 1.5 * grid + gen.normal(size=(10, 20_000))).mean(1, keepdims=True)
     assert abs(pred - mode).mean() < 0.03 and abs(mean - mode).mean() > 0.1
+
+
+def test_behaviour_entropy_recovers_a_known_policys_entropy():
+    """Data from tanh-Gaussians of known spread: the estimate is their entropy at the data (the actions' mean negative
+    log-likelihood under the true policy), a three times wider policy reads about 2 ln 3 nats higher, and the caller's
+    torch RNG stream is left where it was."""
+    from drop_engine.bc import behaviour_entropy
+    from drop_engine.data import Dataset
+    from drop_engine.sac import _squashed_log_prob
+
+    gen = np.random.default_rng(0)
+    n = 20_000
+    obs = gen.uniform(-1, 1, (n, 2)).astype(np.float32)
+    mu = np.stack([1.0 + 1.5 * obs[:, 0], -0.5 * obs[:, 1]], 1)
+    zeros = np.zeros(n, np.float32)
+    found, truth = [], []
+    for scale in (1.0, 3.0):
+        std = np.array([0.1, 0.05]) * scale
+        u = mu + std * gen.normal(size=(n, 2))
+        data = Dataset(obs, np.tanh(u).astype(np.float32), zeros, obs, zeros.astype(bool), zeros.astype(bool))
+        before = torch.get_rng_state()
+        found.append(behaviour_entropy(data, steps=1500))
+        assert torch.equal(torch.get_rng_state(), before)
+        log_p = _squashed_log_prob(torch.as_tensor(u), torch.as_tensor(mu), torch.as_tensor(np.log(std)).expand(n, 2))
+        truth.append(-log_p.mean().item())
+    assert found == pytest.approx(truth, abs=0.1)
+    assert found[1] - found[0] == pytest.approx(2 * np.log(3), abs=0.2)
 
 
 @pytest.mark.parametrize("bc_weight, expected", [(0.0, 0.5), (10.0, -0.5)])

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -261,3 +262,37 @@ def test_a_checkpoint_of_format_1_still_resumes(tmp_path, hopper_dataset):
     assert result.status == "completed" and len(result.evaluations) == 3
     meta = json.loads((tmp_path / "policy" / "best" / "metadata.json").read_text())
     assert meta["epoch"] == result.best_epoch or "not kept" in meta["selected_by"]
+
+
+def test_target_entropy_from_the_data_is_fitted_once_and_survives_a_stop(tmp_path, hopper_dataset, monkeypatch):
+    """A stop inside the fit keeps nothing of it; the resumed run fits, holds the policy at the estimate where that is
+    below -|A| (actions close to a function of the state), reports both, and a later resume reads the estimate from
+    the checkpoint instead of fitting again."""
+    from drop_engine.bc import train_bc
+    from drop_engine.data import Dataset
+
+    d = hopper_dataset
+    noise = np.random.default_rng(0).normal(0, 0.05, d.actions.shape)
+    narrow = np.tanh(2 * d.observations[:, :3] + noise).astype(np.float32)
+    data = Dataset(d.observations, narrow, d.rewards, d.next_observations, d.terminals, d.timeouts)
+    cfg = _config("mopo", epochs=2, sac={"target_entropy": "data", "behaviour_fit_steps": 300})
+    first = Recorder(stop_in=train_bc, after=1)
+    stopped = Trainer(data, cfg, tmp_path, first).run()
+    assert stopped.status == "stopped" and stopped.checkpoint is not None
+    assert load_latest(tmp_path / "checkpoints")["behaviour_entropy"] is None
+
+    second = Recorder(stop_in=Trainer._sac_steps, after=5)
+    b = Trainer(data, cfg, tmp_path, second)
+    assert b.run().status == "stopped"
+    [fitted] = [m for _, m in second.metrics if "sac/behaviour_entropy" in m]
+    estimate = fitted["sac/behaviour_entropy"]
+    assert b.sac.target_entropy == fitted["sac/target_entropy"] == estimate < -3.0
+    assert b.timings["behaviour_fit"] > 0
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the behaviour entropy was estimated again")
+
+    monkeypatch.setattr("drop_engine.trainer.behaviour_entropy", no_fit)
+    c = Trainer(data, cfg, tmp_path, Recorder())
+    assert c.run().status == "completed"
+    assert (c.behaviour_entropy, c.sac.target_entropy) == (estimate, b.sac.target_entropy)
