@@ -296,3 +296,16 @@ def test_target_entropy_from_the_data_is_fitted_once_and_survives_a_stop(tmp_pat
     c = Trainer(data, cfg, tmp_path, Recorder())
     assert c.run().status == "completed"
     assert (c.behaviour_entropy, c.sac.target_entropy) == (estimate, b.sac.target_entropy)
+
+
+def test_a_data_entropy_above_the_default_target_changes_nothing(tmp_path, hopper_dataset):
+    """The smoke file's actions are broad (estimate above -|A|): the run keeps -|A| and, as the fit draws from a forked
+    RNG stream, gives the numbers of a run without the option."""
+    plain = Trainer(hopper_dataset, _config("drop", epochs=1), tmp_path / "plain")
+    a = plain.run()  # before the next Trainer seeds the process's RNG streams again
+    fitted = Trainer(hopper_dataset, _config("drop", epochs=1, sac={"target_entropy": "data"}), tmp_path / "data")
+    b = fitted.run()
+    assert fitted.behaviour_entropy > -3.0 and fitted.sac.target_entropy == plain.sac.target_entropy == -3.0
+    assert a.evaluations == b.evaluations
+    for (name, pa), pb in zip(plain.sac.state_dict().items(), fitted.sac.state_dict().values()):
+        assert torch.equal(pa, pb), name
