@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     (out / "behaviour_entropy.json").write_text(json.dumps(rows, indent=2))
     lines = ["# The bench files' behaviour entropy (nats) against SAC's target -\\|A\\|", "",
-             "| dataset | -\\|A\\| | recording policies | " + " | ".join(f"estimate, {s} steps" for s in args.steps) + " |",
+             "| dataset | -\\|A\\| | recording policies | "
+             + " | ".join(f"estimate, {s} steps" for s in args.steps) + " |",
              "|---|---|---|" + "---|" * len(args.steps)]
     for r in rows:
         rec = "-" if r["recorded"] is None else f"{r['recorded']:.2f}"

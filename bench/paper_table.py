@@ -39,7 +39,8 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 # Bumped when a preset's meaning changes, so runs of the old meaning are kept apart and never counted as the new.
 # 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
 # 3: the behaviour term on the data actions' likelihood instead of the mean action's squared error (E23).
-REVISION = 3
+# 4: the policy's entropy target no higher than the data's behaviour entropy (sac.target_entropy='data', E28).
+REVISION = 4
 
 
 def bc_setting(steps: int) -> str:

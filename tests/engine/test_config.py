@@ -49,6 +49,7 @@ def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
     for algo in ("drop", "mopo", "mbpo"):
         assert cpu[algo, "medium"].sac.bc_weight > cpu[algo, "medium-replay"].sac.bc_weight > 0
     assert {c.sac.bc_action for c in cpu.values()} == {"likelihood"}
+    assert {c.sac.target_entropy for c in cpu.values()} == {"data"} and paper.sac.target_entropy == -3.0
     drop = build_config("drop", env="hopper", preset="cpu", task="medium")
     assert drop.dice.positive and not drop.penalty.bonus and drop.eval_episodes == 10
     assert drop.dynamics.max_seconds is None and drop.dynamics.max_epochs
