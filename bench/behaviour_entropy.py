@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drop_engine.bc import behaviour_entropy
+from drop_engine.bc import behaviour_entropy, entropy_rows
 from drop_engine.data import load_dataset
 from drop_engine.online import CHECKPOINT_NAME
 from drop_engine.sac import Actor
@@ -40,7 +40,7 @@ def recorded_entropy(path: Path, env: str, samples: int = 10_000) -> float | Non
     state = torch.load(path.parent / f"{env}-sac" / CHECKPOINT_NAME, map_location="cpu", weights_only=False)
     snaps = {s["step"]: s["actor"] for s in state["snapshots"]}
     per_policy = int(data.attrs["transitions_per_policy"])
-    rows = np.sort(np.random.default_rng(0).choice(len(data), size=min(samples, len(data)), replace=False))
+    rows = entropy_rows(data, samples)  # the rows the estimate reads
     nll = np.empty(len(rows))
     for i, step in enumerate(steps):  # medium-expert: the medium policy's rows, then the expert's
         mine = (rows >= i * per_policy) & (rows < (i + 1) * per_policy)

@@ -98,7 +98,8 @@ def _working_bytes(cfg: TrainConfig, shape: DataShape) -> int:
 
 def _metric_rows(cfg: TrainConfig) -> int:
     """Rows of metrics, following the trainer's reports: one row per dynamics epoch (counted when `max_epochs`
-    bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); per
+    bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); two
+    for the behaviour-entropy fit of target_entropy 'data'; per
     epoch the rollout statistics, the time of each phase, and SAC's averages every `log_every` global steps and at
     each epoch end in between."""
     epochs, steps, every = cfg.epochs, cfg.steps_per_epoch, cfg.log_every
@@ -113,7 +114,8 @@ def _metric_rows(cfg: TrainConfig) -> int:
         starts += DICE_METRICS * ((cfg.dice.pretrain_steps > 0) + (epochs - 1) * (cfg.dice.steps_per_epoch > 0))
     # rollout, sac, epochs (and dice) every epoch; evaluate from the first evaluation on
     timings = epochs * (3 + drop) + epochs - min(cfg.eval_every, epochs) + 1
-    return (cfg.dynamics.max_epochs or 0) + 3 + starts + flushes * per_flush + timings
+    fit = 2 * (cfg.sac.target_entropy == "data")
+    return (cfg.dynamics.max_epochs or 0) + 3 + fit + starts + flushes * per_flush + timings
 
 
 def estimate(cfg: TrainConfig, shape: DataShape) -> ResourceEstimate:

@@ -35,6 +35,7 @@ from .dice import GradientDice
 from .divergence import check_finite
 from .dynamics import DynamicsReport, build_ensemble, dynamics_rng, train_dynamics
 from .envs import DEFAULT_VERSION, get_env
+from .errors import ConfigError
 from .evaluation import evaluate
 from .export import export_policy
 from .model_cache import ModelCache, model_key
@@ -235,15 +236,20 @@ class Trainer:
         return True
 
     def _set_behaviour_entropy(self, value: float | None) -> None:
+        """Keep the estimate (it is checkpointed) and, where the config asks for it, take the target from it."""
         self.behaviour_entropy = value
-        if value is not None:
+        if value is not None and self.cfg.sac.target_entropy == "data":
             self.sac.target_entropy = min(-float(self.data.act_dim), value)
 
     def fit_target_entropy(self) -> bool:
         """With target_entropy 'data', estimate the data's behaviour entropy (once: it is checkpointed) and hold the
-        policy at no more than it; False if the caller stopped the fit (nothing of it is kept then)."""
+        policy at no more than it; False if the caller stopped the fit (nothing of it is kept then). Only at the run's
+        start: a run that trained past it at another target would change target part-way."""
         if self.cfg.sac.target_entropy != "data" or self.behaviour_entropy is not None:
             return True
+        if self.global_step > 0:
+            raise ConfigError(f"this run trained {self.global_step} steps without sac.target_entropy='data'; resume it "
+                              "with the target it started with (e.g. --set sac.target_entropy=null)")
         start = time.perf_counter()
         try:
             value = behaviour_entropy(self.data, self.cfg.sac.behaviour_fit_steps, self.cfg.seed,

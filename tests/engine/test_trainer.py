@@ -309,3 +309,22 @@ def test_a_data_entropy_above_the_default_target_changes_nothing(tmp_path, hoppe
     assert a.evaluations == b.evaluations
     for (name, pa), pb in zip(plain.sac.state_dict().items(), fitted.sac.state_dict().values()):
         assert torch.equal(pa, pb), name
+
+
+def test_a_resume_follows_its_own_target_setting(tmp_path, hopper_dataset):
+    """A checkpointed estimate sets the target only while the config asks for 'data'; a run that trained at another
+    target cannot switch to 'data' part-way, and the error says how to resume it."""
+    from drop_engine.errors import ConfigError
+
+    data_cfg = _config("mopo", epochs=2, sac={"target_entropy": "data", "behaviour_fit_steps": 200})
+    stop = Recorder(stop_in=Trainer._sac_steps, after=5)
+    assert Trainer(hopper_dataset, data_cfg, tmp_path / "a", stop).run().status == "stopped"
+    other = data_cfg.model_copy(update={"sac": data_cfg.sac.model_copy(update={"target_entropy": -5.0})})
+    resumed = Trainer(hopper_dataset, other, tmp_path / "a")
+    resumed.load_state_dict(load_latest(tmp_path / "a" / "checkpoints"))
+    assert resumed.behaviour_entropy is not None and resumed.sac.target_entropy == -5.0
+
+    plain = _config("mopo", epochs=2)
+    assert Trainer(hopper_dataset, plain, tmp_path / "b", Recorder(stop_in=Trainer._sac_steps, after=5)).run()
+    with pytest.raises(ConfigError, match="sac.target_entropy=null"):
+        Trainer(hopper_dataset, data_cfg, tmp_path / "b").run()
