@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from drop_engine.bc import behaviour_entropy, entropy_rows
-from drop_engine.data import load_dataset
+from drop_engine.data import Dataset, load_dataset
 from drop_engine.online import CHECKPOINT_NAME
 from drop_engine.sac import Actor
 
@@ -30,21 +30,21 @@ KINDS = ("random", "medium", "medium-replay", "medium-expert")
 
 
 @torch.no_grad()
-def recorded_entropy(path: Path, env: str, samples: int = 10_000) -> float | None:
-    """The data actions' mean negative log-likelihood under the snapshot that recorded each row, on a fixed
-    subsample; None for a file not recorded by snapshots (medium-replay)."""
-    data = load_dataset(path, env=env)
+def recorded_entropy(data: Dataset, path: Path, env: str) -> float | None:
+    """The data actions' mean negative log-likelihood under the snapshot that recorded each row, on the rows the
+    estimate reads; None for a file not recorded by snapshots (medium-replay)."""
     steps = [int(s) for s in np.atleast_1d(data.attrs["policy_steps"])]
     if "replay" in str(data.attrs.get("behaviour", "")):
         return None
     state = torch.load(path.parent / f"{env}-sac" / CHECKPOINT_NAME, map_location="cpu", weights_only=False)
     snaps = {s["step"]: s["actor"] for s in state["snapshots"]}
     per_policy = int(data.attrs["transitions_per_policy"])
-    rows = entropy_rows(data, samples)  # the rows the estimate reads
+    hidden = tuple(state["config"]["sac"]["hidden"])  # the collection's actor, as its checkpoint records it
+    rows = entropy_rows(data)
     nll = np.empty(len(rows))
     for i, step in enumerate(steps):  # medium-expert: the medium policy's rows, then the expert's
         mine = (rows >= i * per_policy) & (rows < (i + 1) * per_policy)
-        actor = Actor(data.obs_dim, data.act_dim, (256, 256))
+        actor = Actor(data.obs_dim, data.act_dim, hidden)
         actor.load_state_dict(snaps[step])
         obs, act = torch.as_tensor(data.observations[rows[mine]]), torch.as_tensor(data.actions[rows[mine]])
         nll[mine] = -actor.log_prob(obs, act).numpy()
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             data = load_dataset(path, env=env)
             row = {"env": env, "kind": kind, "act_dim": data.act_dim, "target": -float(data.act_dim),
-                   "content_hash": data.content_hash, "recorded": recorded_entropy(path, env),
+                   "content_hash": data.content_hash, "recorded": recorded_entropy(data, path, env),
                    "estimate": {str(s): behaviour_entropy(data, s) for s in args.steps}}
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -46,8 +46,8 @@ def _inside(data: Dataset) -> np.ndarray:
 
 def entropy_rows(data: Dataset, samples: int = 10_000, seed: int = 0) -> np.ndarray:
     """The rows a behaviour entropy is read on: a fixed subsample of `_inside`'s."""
-    return np.sort(np.random.default_rng(seed).choice(_inside(data), size=min(samples, len(_inside(data))),
-                                                       replace=False))
+    inside = _inside(data)
+    return np.sort(np.random.default_rng(seed).choice(inside, size=min(samples, len(inside)), replace=False))
 
 
 def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: StopFlag = never) -> float:

@@ -325,6 +325,7 @@ def test_a_resume_follows_its_own_target_setting(tmp_path, hopper_dataset):
     assert resumed.behaviour_entropy is not None and resumed.sac.target_entropy == -5.0
 
     plain = _config("mopo", epochs=2)
-    assert Trainer(hopper_dataset, plain, tmp_path / "b", Recorder(stop_in=Trainer._sac_steps, after=5)).run()
+    stop = Recorder(stop_in=Trainer._sac_steps, after=5)
+    assert Trainer(hopper_dataset, plain, tmp_path / "b", stop).run().status == "stopped"
     with pytest.raises(ConfigError, match="sac.target_entropy=null"):
         Trainer(hopper_dataset, data_cfg, tmp_path / "b").run()
