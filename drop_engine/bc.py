@@ -1,6 +1,8 @@
 """Behaviour cloning, the floor every offline method should clear: regress the data's actions from its states."""
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import torch
 
@@ -12,13 +14,15 @@ from .stopping import StopFlag, check, never
 
 
 def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0,
-             hidden: tuple[int, ...] = (256, 256), should_stop: StopFlag = never) -> Actor:
+             hidden: tuple[int, ...] = (256, 256), should_stop: StopFlag = never,
+             on_step: Callable[[int, int], None] | None = None) -> Actor:
     """A tanh-Gaussian actor fitted to the dataset's actions by maximum likelihood; it acts with its mode tanh(mu(s)).
 
     Likelihood, not squared error: the data of a stochastic policy (a SAC actor's samples) has the mean action
     E[a|s], pulled inward from the bounds, where the policy's own deterministic action is its mode, and walker2d
     falls over with the mean (bench/QUALITY.md E20: 25.6 against 38.4-50.8 at 100,000 steps, the data 37.8).
-    `should_stop` is asked every 100 steps and raises `Stopped`."""
+    `should_stop` is asked every 100 steps and raises `Stopped`; `on_step(step, steps)`, where given, is told there and
+    at the end, for progress."""
     torch.manual_seed(seed)
     actor = Actor(data.obs_dim, data.act_dim, hidden)
     norm = Normalizer.fit(data.observations)
@@ -30,11 +34,15 @@ def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: flo
     for step in range(steps):
         if step % 100 == 0:
             check(should_stop)
+            if on_step is not None:
+                on_step(step, steps)
         idx = torch.randint(0, len(obs), (batch_size,), generator=gen)
         loss = -actor.log_prob(obs[idx], act[idx]).mean()
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
+    if on_step is not None:
+        on_step(steps, steps)
     return actor
 
 
@@ -50,7 +58,8 @@ def entropy_rows(data: Dataset, samples: int = 10_000, seed: int = 0) -> np.ndar
     return np.sort(np.random.default_rng(seed).choice(inside, size=min(samples, len(inside)), replace=False))
 
 
-def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: StopFlag = never) -> float:
+def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: StopFlag = never,
+                      on_step: Callable[[int, int], None] | None = None) -> float:
     """An estimate, in nats, of the entropy of the policy that chose the data's actions: their mean negative
     log-likelihood over `entropy_rows` under a tanh-Gaussian fitted to the `_inside` rows (`train_bc`, on the CPU).
 
@@ -61,7 +70,7 @@ def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: Sto
     fit_on = data if len(inside) == len(data) else Dataset(*(getattr(data, k)[inside] for k in (
         "observations", "actions", "rewards", "next_observations", "terminals", "timeouts")))
     with torch.random.fork_rng(devices=[]):
-        actor = train_bc(fit_on, steps, seed=seed, should_stop=should_stop)
+        actor = train_bc(fit_on, steps, seed=seed, should_stop=should_stop, on_step=on_step)
     rows = entropy_rows(data, seed=seed)
     with torch.no_grad():
         nll = -actor.log_prob(torch.as_tensor(data.observations[rows]), torch.as_tensor(data.actions[rows]))

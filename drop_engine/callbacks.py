@@ -16,7 +16,8 @@ class Callback:
         checkpoint by an earlier, lost run is superseded by what this run reports."""
 
     def on_progress(self, phase: str, epoch: int, step: int, total: int) -> None:
-        """phase is 'dynamics', 'train' or 'export'; step counts within the phase, out of total."""
+        """phase is 'dynamics' (its steps are epochs), 'behaviour_fit' (with sac.target_entropy='data'), 'train' or
+        'export'; step counts within the phase, out of total."""
 
     def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         """Named scalar metrics at a global SAC step (step 0 and negative for the dynamics phase)."""
@@ -47,7 +48,7 @@ class ProgressBar(Callback):
         if phase != self._phase:
             self.close()
             self._phase = phase
-            self._bar = tqdm(total=total or None, desc=phase, unit="step" if phase == "train" else "epoch")
+            self._bar = tqdm(total=total or None, desc=phase, unit="epoch" if phase == "dynamics" else "step")
         self._bar.n = step
         self._bar.refresh()
 

@@ -253,7 +253,8 @@ class Trainer:
         start = time.perf_counter()
         try:
             value = behaviour_entropy(self.data, self.cfg.sac.behaviour_fit_steps, self.cfg.seed,
-                                      should_stop=self.cb.should_stop)
+                                      should_stop=self.cb.should_stop,
+                                      on_step=lambda step, total: self.cb.on_progress("behaviour_fit", 0, step, total))
         except Stopped:
             return False
         self.timings["behaviour_fit"] += time.perf_counter() - start

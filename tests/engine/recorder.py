@@ -1,7 +1,7 @@
 """A callback that records everything a run reports and can ask it to stop from inside a chosen function."""
 import inspect
 import sys
-from collections import Counter
+from collections import Counter, defaultdict
 
 from drop_engine.callbacks import Callback
 
@@ -16,6 +16,7 @@ class Recorder(Callback):
 
     def __init__(self, stop_in=None, after: int = 0):
         self.metrics, self.evaluations, self.checkpoints, self.phases, self.progress = [], [], [], set(), None
+        self.steps = defaultdict(list)  # phase -> every (step, total) reported in it
         self.asks, self.stop_in, self.after, self.stopping, self.starts = Counter(), stop_in, after, False, []
 
     def asked_in(self, fn) -> int:
@@ -26,6 +27,7 @@ class Recorder(Callback):
 
     def on_progress(self, phase, epoch, step, total):
         self.phases.add(phase)
+        self.steps[phase].append((step, total))
         self.progress = (epoch, step)
 
     def on_metrics(self, metrics, step):

@@ -288,6 +288,7 @@ def test_target_entropy_from_the_data_is_fitted_once_and_survives_a_stop(tmp_pat
     estimate = fitted["sac/behaviour_entropy"]
     assert b.sac.target_entropy == fitted["sac/target_entropy"] == estimate < -3.0
     assert b.timings["behaviour_fit"] > 0
+    assert second.steps["behaviour_fit"] == [(0, 300), (100, 300), (200, 300), (300, 300)], "the fit's progress"
 
     def no_fit(*args, **kwargs):
         raise AssertionError("the behaviour entropy was estimated again")
