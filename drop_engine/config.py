@@ -97,6 +97,11 @@ class SACConfig(_Strict):
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "
                            "(bench/QUALITY.md E5); False is the paper's plain MLP")
+    value_bound: bool = Field(
+        False, description="clip the critics' target at the largest soft return the data's rewards allow, "
+                           "(max reward + alpha |A| log 2) / (1 - gamma): no policy earns more than the data's best "
+                           "reward at every step plus the largest entropy on [-1, 1]^|A|, so a Q above it is "
+                           "extrapolation feeding on itself (bench/QUALITY.md E30); False is the paper's")
 
 
 class RolloutConfig(_Strict):

@@ -100,12 +100,13 @@ def _metric_rows(cfg: TrainConfig) -> int:
     """Rows of metrics, following the trainer's reports: one row per dynamics epoch (counted when `max_epochs`
     bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); two
     for the behaviour-entropy fit of target_entropy 'data'; per
-    epoch the rollout statistics, the time of each phase, and SAC's averages every `log_every` global steps and at
-    each epoch end in between."""
+    epoch the rollout statistics, the time of each phase, and SAC's averages (with the behaviour term's and the value
+    bound's where they are on) every `log_every` global steps and at each epoch end in between."""
     epochs, steps, every = cfg.epochs, cfg.steps_per_epoch, cfg.log_every
     drop = cfg.algorithm == "drop"
     n_real = round(cfg.sac.batch_size * cfg.sac.real_ratio)
-    per_flush = SAC_METRICS + (cfg.sac.bc_weight > 0) + 2 * (0 < n_real < cfg.sac.batch_size)
+    per_flush = (SAC_METRICS + (cfg.sac.bc_weight > 0) + cfg.sac.value_bound
+                 + 2 * (0 < n_real < cfg.sac.batch_size))
     # A flush at every multiple of log_every, plus one at each epoch end that is not such a multiple: epoch e ends on
     # one exactly when e is a multiple of log_every / gcd(steps, log_every).
     flushes = epochs * steps // every + epochs - epochs // (every // gcd(steps, every))

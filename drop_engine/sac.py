@@ -76,6 +76,8 @@ class SAC(nn.Module):
         self.actor_optim = adam(self.actor.parameters(), cfg.actor_lr)
         self.critic_optim = adam(self.critic.parameters(), cfg.critic_lr)
         self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)
+        self.max_reward = math.inf  # the data's largest reward (set_reward_bound), read with value_bound
+        self.max_entropy = act_dim * math.log(2.0)  # of the uniform distribution on [-1, 1]^|A|
 
     def anneal(self, progress: float) -> None:
         """Set the actor's learning rate for the point `progress` in [0, 1) of the run. It is a function of where the
@@ -87,6 +89,14 @@ class SAC(nn.Module):
     def set_obs_normalizer(self, mean, std) -> None:
         for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
             module.set(mean, std)
+
+    def set_reward_bound(self, max_reward: float) -> None:
+        self.max_reward = float(max_reward)
+
+    def value_ceiling(self, alpha: torch.Tensor) -> torch.Tensor:
+        """The largest soft value any policy can have if no reward exceeds `max_reward`: each step earns at most that
+        plus alpha times the largest entropy of a distribution on [-1, 1]^|A|."""
+        return (self.max_reward + alpha * self.max_entropy) / (1.0 - self.cfg.gamma)
 
     def update(self, obs, act, rew, next_obs, done, real: tuple[torch.Tensor, torch.Tensor] | None = None,
                n_real: int = 0) -> dict[str, torch.Tensor]:
@@ -100,6 +110,10 @@ class SAC(nn.Module):
             next_act, next_logp = self.actor.sample(next_obs)
             q_next = self.critic_target(next_obs, next_act).min(0).values - alpha * next_logp
             target = rew + cfg.gamma * (1.0 - done) * q_next
+            if cfg.value_bound:
+                ceiling = self.value_ceiling(alpha)
+                clipped = (target > ceiling).float().mean()
+                target = target.clamp_max(ceiling)
         q = self.critic(obs, act)
         critic_loss = (q - target).pow(2).mean(1).sum()
         self.critic_optim.zero_grad(set_to_none=True)
@@ -131,6 +145,8 @@ class SAC(nn.Module):
             "sac/entropy": -logp.detach().mean(),
             **extra,
         }
+        if cfg.value_bound:
+            metrics["sac/target_clipped"] = clipped
         if 0 < n_real < q.shape[1]:
             metrics["sac/q_data"] = q[:, :n_real].mean()
             metrics["sac/q_model"] = q[:, n_real:].mean()

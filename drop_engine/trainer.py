@@ -118,6 +118,7 @@ class Trainer:
         self.model_cache = ModelCache(model_cache) if model_cache is not None else None
         self.sac = SAC(obs_dim, act_dim, config.sac).to(dev)
         self.sac.set_obs_normalizer(norm.mean, norm.std)
+        self.sac.set_reward_bound(float(self.data.rewards.max()))
         self.dice = None
         if config.algorithm == "drop":
             self.dice = GradientDice(config.dynamics.elites, obs_dim, act_dim, config.dice,

@@ -198,3 +198,23 @@ def test_cosine_schedule_takes_only_the_actor_lr_to_zero():
     assert {tuple(r) for (schedule, _), r in rates.items() if schedule == "constant"} == {(4e-4, 3e-4, 3e-4)}
     for progress, actor in ((0.0, 4e-4), (0.5, 2e-4), (0.9, 4e-4 * (1 - 0.9511) / 2)):
         assert rates["cosine", progress] == pytest.approx([actor, 3e-4, 3e-4], rel=1e-3)
+
+
+@pytest.mark.parametrize("value_bound", [False, True])
+def test_value_bound_clips_the_critic_target(value_bound):
+    """A target critic whose values ran away (1e4) teaches the critics those values unless the bound caps the target at
+    the largest soft return rewards of at most 1 allow: (1 + alpha |A| log 2) / (1 - gamma), 238.6 at alpha 1."""
+    torch.manual_seed(0)
+    sac = SAC(3, 2, SACConfig(hidden=(16, 16), value_bound=value_bound))
+    sac.set_reward_bound(1.0)
+    ceiling = (1.0 + 2 * np.log(2.0)) / (1 - 0.99)
+    assert float(sac.value_ceiling(torch.tensor(1.0))) == pytest.approx(ceiling)
+    with torch.no_grad():
+        list(sac.critic_target.parameters())[-1].fill_(1e4)  # the output bias of both target critics
+    n = 64
+    metrics = sac.update(torch.randn(n, 3), torch.rand(n, 2) * 2 - 1, torch.zeros(n), torch.randn(n, 3), torch.zeros(n))
+    bounded = float(metrics["sac/critic_loss"]) < 2 * (ceiling + 10) ** 2
+    assert bounded == value_bound
+    assert ("sac/target_clipped" in metrics) == value_bound
+    if value_bound:
+        assert float(metrics["sac/target_clipped"]) == 1.0

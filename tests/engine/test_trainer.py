@@ -330,3 +330,12 @@ def test_a_resume_follows_its_own_target_setting(tmp_path, hopper_dataset):
     assert Trainer(hopper_dataset, plain, tmp_path / "b", stop).run().status == "stopped"
     with pytest.raises(ConfigError, match="sac.target_entropy=null"):
         Trainer(hopper_dataset, data_cfg, tmp_path / "b").run()
+
+
+def test_value_bound_reads_the_datas_largest_reward(tmp_path, hopper_dataset):
+    """The ceiling on the critics' target is set from the data the run trains on, and reported while it binds."""
+    recorder = Recorder()
+    t = Trainer(hopper_dataset, _config("mbpo", epochs=1, sac={"value_bound": True}), tmp_path, recorder)
+    assert t.sac.max_reward == float(hopper_dataset.rewards.max())
+    assert t.run().status == "completed"
+    assert any("sac/target_clipped" in m for _, m in recorder.metrics)
