@@ -98,10 +98,11 @@ class SACConfig(_Strict):
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "
                            "(bench/QUALITY.md E5); False is the paper's plain MLP")
     value_bound: bool = Field(
-        False, description="clip the critics' target at the largest soft return the data's rewards allow, "
-                           "(max reward + alpha |A| log 2) / (1 - gamma): no policy earns more than the data's best "
-                           "reward at every step plus the largest entropy on [-1, 1]^|A|, so a Q above it is "
-                           "extrapolation feeding on itself (bench/QUALITY.md E30); False is the paper's")
+        False, description="clip the bootstrapped Q in the critics' target at the largest soft Q possible if no "
+                           "step earns more than the data's largest reward, (r_max + gamma alpha |A| log 2) / "
+                           "(1 - gamma): a Q above it is extrapolation feeding on itself (bench/QUALITY.md E30). A "
+                           "model reward above r_max is the model's extrapolation, so on rollouts the clip is "
+                           "pessimism, not a bound the model obeys. False is the paper's")
 
 
 class RolloutConfig(_Strict):

@@ -51,6 +51,8 @@ class OnlineConfig:
             self.steps = spec.collect_steps
         if self.steps < 1 or self.eval_every < 1 or self.eval_episodes < 1 or self.warmup < 0:
             raise ValueError("steps, eval_every and eval_episodes must be positive and warmup non-negative")
+        if self.sac.value_bound:
+            raise ValueError("sac.value_bound reads an offline dataset's largest reward; online collection has none")
 
     @property
     def threshold(self) -> float:

@@ -12,8 +12,8 @@ from .run_log import NotARun, run_config
 
 # tau on the data should stay near 1; Q on model rows running away from Q on data rows, or model rewards above the
 # data's, is model exploitation; the penalty's share says how much of the reward DROP's or MOPO's penalty takes.
-DEFAULT_KEYS = ("dice/tau_data_mean", "rollout/penalty_share", "sac/q_data", "sac/q_model", "sac/bc_mse",
-                "sac/bc_nll", "sac/alpha", "sac/entropy", "diag/reward_data", "diag/reward_model",
+DEFAULT_KEYS = ("dice/tau_data_mean", "rollout/penalty_share", "sac/q_data", "sac/q_model", "sac/target_clipped",
+                "sac/bc_mse", "sac/bc_nll", "sac/alpha", "sac/entropy", "diag/reward_data", "diag/reward_model",
                 "diag/uncertainty_data", "diag/uncertainty_model")
 
 

@@ -94,9 +94,12 @@ class SAC(nn.Module):
         self.max_reward = float(max_reward)
 
     def value_ceiling(self, alpha: torch.Tensor) -> torch.Tensor:
-        """The largest soft value any policy can have if no reward exceeds `max_reward`: each step earns at most that
-        plus alpha times the largest entropy of a distribution on [-1, 1]^|A|."""
-        return (self.max_reward + alpha * self.max_entropy) / (1.0 - self.cfg.gamma)
+        """The largest soft Q any policy can have if no step earns more than `max_reward`. Each step adds at most
+        that reward and, from the next step on, alpha times the largest entropy of a distribution on [-1, 1]^|A|:
+        Q_max = r_max + gamma (Q_max + alpha H_max). A terminal step earns r_max alone, above Q_max when r_max is
+        below -alpha H_max."""
+        bootstrapped = (self.max_reward + self.cfg.gamma * alpha * self.max_entropy) / (1.0 - self.cfg.gamma)
+        return torch.clamp_min(bootstrapped, self.max_reward)
 
     def update(self, obs, act, rew, next_obs, done, real: tuple[torch.Tensor, torch.Tensor] | None = None,
                n_real: int = 0) -> dict[str, torch.Tensor]:
@@ -108,12 +111,12 @@ class SAC(nn.Module):
         alpha = self.log_alpha.exp().detach()
         with torch.no_grad():
             next_act, next_logp = self.actor.sample(next_obs)
-            q_next = self.critic_target(next_obs, next_act).min(0).values - alpha * next_logp
-            target = rew + cfg.gamma * (1.0 - done) * q_next
-            if cfg.value_bound:
+            q_next = self.critic_target(next_obs, next_act).min(0).values
+            if cfg.value_bound:  # the bootstrapped value only: the entropy sample and the reward stay as drawn
                 ceiling = self.value_ceiling(alpha)
-                clipped = (target > ceiling).float().mean()
-                target = target.clamp_max(ceiling)
+                clipped = (q_next > ceiling).float().mean()
+                q_next = q_next.clamp_max(ceiling)
+            target = rew + cfg.gamma * (1.0 - done) * (q_next - alpha * next_logp)
         q = self.critic(obs, act)
         critic_loss = (q - target).pow(2).mean(1).sum()
         self.critic_optim.zero_grad(set_to_none=True)

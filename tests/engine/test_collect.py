@@ -111,6 +111,12 @@ def test_collect_transitions_batches_envs_and_keeps_episodes_contiguous():
         assert ends[-1]
 
 
+def test_online_sac_refuses_a_value_bound_it_has_no_rewards_for():
+    """The bound reads an offline dataset's largest reward; online, it would be infinite and silently do nothing."""
+    with pytest.raises(ValueError, match="value_bound"):
+        small_online(sac=SACConfig(hidden=(64, 64), value_bound=True))
+
+
 def _params(agent: OnlineSAC) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in agent.sac.parameters()])
 

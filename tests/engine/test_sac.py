@@ -200,21 +200,43 @@ def test_cosine_schedule_takes_only_the_actor_lr_to_zero():
         assert rates["cosine", progress] == pytest.approx([actor, 3e-4, 3e-4], rel=1e-3)
 
 
-@pytest.mark.parametrize("value_bound", [False, True])
-def test_value_bound_clips_the_critic_target(value_bound):
-    """A target critic whose values ran away (1e4) teaches the critics those values unless the bound caps the target at
-    the largest soft return rewards of at most 1 allow: (1 + alpha |A| log 2) / (1 - gamma), 238.6 at alpha 1."""
+def _one_update(value_bound: bool, runaway: bool) -> tuple[SAC, dict]:
     torch.manual_seed(0)
     sac = SAC(3, 2, SACConfig(hidden=(16, 16), value_bound=value_bound))
     sac.set_reward_bound(1.0)
-    ceiling = (1.0 + 2 * np.log(2.0)) / (1 - 0.99)
-    assert float(sac.value_ceiling(torch.tensor(1.0))) == pytest.approx(ceiling)
-    with torch.no_grad():
-        list(sac.critic_target.parameters())[-1].fill_(1e4)  # the output bias of both target critics
+    if runaway:
+        with torch.no_grad():
+            list(sac.critic_target.parameters())[-1].fill_(1e4)  # the output bias of both target critics
     n = 64
-    metrics = sac.update(torch.randn(n, 3), torch.rand(n, 2) * 2 - 1, torch.zeros(n), torch.randn(n, 3), torch.zeros(n))
-    bounded = float(metrics["sac/critic_loss"]) < 2 * (ceiling + 10) ** 2
-    assert bounded == value_bound
-    assert ("sac/target_clipped" in metrics) == value_bound
-    if value_bound:
-        assert float(metrics["sac/target_clipped"]) == 1.0
+    gen = torch.Generator().manual_seed(1)
+    obs, next_obs = torch.randn(n, 3, generator=gen), torch.randn(n, 3, generator=gen)
+    act = torch.rand(n, 2, generator=gen) * 2 - 1
+    return sac, sac.update(obs, act, torch.zeros(n), next_obs, torch.zeros(n))
+
+
+def test_value_bound_clips_only_a_runaway_bootstrap():
+    """A target critic whose values ran away (1e4) teaches the critics those values unless the bound caps the
+    bootstrapped Q at the largest soft Q rewards of at most 1 allow, (1 + gamma alpha |A| log 2) / (1 - gamma), 237.2
+    at alpha 1; a target critic within the bound is left exactly as it is."""
+    ceiling = (1.0 + 0.99 * 2 * np.log(2.0)) / (1 - 0.99)
+    sac, bounded = _one_update(True, runaway=True)
+    assert float(sac.value_ceiling(torch.tensor(1.0))) == pytest.approx(ceiling)
+    assert float(bounded["sac/target_clipped"]) == 1.0
+    assert float(bounded["sac/critic_loss"]) < 2 * (ceiling + 10) ** 2
+    _, plain = _one_update(False, runaway=True)
+    assert "sac/target_clipped" not in plain and float(plain["sac/critic_loss"]) > 1e7
+
+    _, within = _one_update(True, runaway=False)
+    _, unbounded = _one_update(False, runaway=False)
+    assert float(within["sac/target_clipped"]) == 0.0
+    assert float(within["sac/critic_loss"]) == float(unbounded["sac/critic_loss"])
+
+
+def test_value_ceiling_is_never_below_a_terminal_reward():
+    """With rewards all below -alpha |A| log 2, the bootstrapped bound falls below the largest reward, which a terminal
+    step earns alone: the ceiling is then that reward."""
+    sac = SAC(3, 2, SACConfig(value_bound=True))
+    sac.set_reward_bound(-5.0)
+    assert float(sac.value_ceiling(torch.tensor(0.1))) == -5.0
+    sac.set_reward_bound(5.0)
+    assert float(sac.value_ceiling(torch.tensor(0.1))) == pytest.approx((5.0 + 0.099 * 2 * np.log(2.0)) / 0.01)
