@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 
 from .atomic import save_durably
 from .config import SACConfig
@@ -66,6 +67,16 @@ class OnlineConfig:
         out["sac"] = self.sac.model_dump()
         out["threads"] = torch.get_num_threads()
         return out
+
+
+def _with_new_defaults(identity: dict) -> dict:
+    """A checkpoint's settings with the SAC options added since it was written at their defaults, which keep the
+    behaviour that code had (a new option defaults to what was done before); an option since removed stays a
+    difference."""
+    try:
+        return {**identity, "sac": SACConfig(**identity["sac"]).model_dump()}
+    except ValidationError:
+        return identity
 
 
 @dataclass
@@ -228,9 +239,9 @@ class OnlineSAC:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"{self.checkpoint_path}: checkpoint format {state.get('format')} is not "
                              f"{CHECKPOINT_FORMAT}")
-        now = self.cfg.identity()
-        if state["config"] != now:
-            diff = sorted(k for k in state["config"].keys() | now.keys() if state["config"].get(k) != now.get(k))
+        now, saved = self.cfg.identity(), _with_new_defaults(state["config"])
+        if saved != now:
+            diff = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
             raise ValueError(f"{self.checkpoint_path}: made with different settings ({', '.join(diff)}); "
                              "use another --out")
         if state["step"] > self.cfg.steps:

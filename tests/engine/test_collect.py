@@ -141,6 +141,15 @@ def test_resume_continues_the_same_run(tmp_path):
     assert [s.to_dict() for s in straight.snapshots] == [s.to_dict() for s in resumed.snapshots]
     with pytest.raises(ValueError, match="different settings"):
         OnlineSAC(small_online(steps=700, warmup=200, eval_every=350, seed=1), tmp_path / "b")
+    # A checkpoint written before a SAC option existed resumes where the option is at its default, and not otherwise.
+    path = resumed.checkpoint_path
+    state = torch.load(path, weights_only=False)
+    del state["config"]["sac"]["value_bound"]
+    torch.save(state, path)
+    assert OnlineSAC(cfg, tmp_path / "b").resumed
+    with pytest.raises(ValueError, match=r"different settings \(sac\)"):
+        OnlineSAC(small_online(steps=700, warmup=200, eval_every=350, sac=SMALL.model_copy(update={"tau": 0.01})),
+                  tmp_path / "b")
     threads = torch.get_num_threads()
     torch.set_num_threads(threads + 1)
     try:
