@@ -208,8 +208,7 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
 @click.option("--out", required=True, help="output directory; an existing one is resumed")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--steps", type=int, default=None,
-              help="online SAC env steps, one update each (default: 120,000 for hopper, 200,000 for walker2d "
-                   "and halfcheetah; measured times in the README)")
+              help="online SAC env steps, one update each (default: 200,000; measured times in the README)")
 @click.option("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, medium, "
               "expert; medium-expert holds twice this; default 200,000)")
 @click.option("--kinds", default=None,

@@ -38,7 +38,7 @@ class OnlineConfig:
     version: str = "v4"
     seed: int = 0
     # Default: the env's `collect_steps`. One SAC update (256-256, batch 256) costs ~12-20 ms on one core and an env
-    # step ~0.1-0.3 ms, so 120k steps take 25-45 min.
+    # step ~0.1-0.3 ms, so 200k steps take 40-75 min.
     steps: int | None = None
     warmup: int = 5_000
     eval_every: int = 5_000
