@@ -99,9 +99,9 @@ def _working_bytes(cfg: TrainConfig, shape: DataShape) -> int:
 def _metric_rows(cfg: TrainConfig) -> int:
     """Rows of metrics, following the trainer's reports: one row per dynamics epoch (counted when `max_epochs`
     bounds them; early stopping ends them otherwise) and three for its result (holdout, epochs, from the cache); two
-    for the behaviour-entropy fit of target_entropy 'data'; per
-    epoch the rollout statistics, the time of each phase, and SAC's averages (with the behaviour term's and the value
-    bound's where they are on) every `log_every` global steps and at each epoch end in between."""
+    for the behaviour-entropy fit of target_entropy 'data'; per epoch the rollout statistics, the time of each phase,
+    and SAC's averages (with the behaviour term's and the value bound's where they are on) every `log_every` global
+    steps and at each epoch end in between."""
     epochs, steps, every = cfg.epochs, cfg.steps_per_epoch, cfg.log_every
     drop = cfg.algorithm == "drop"
     n_real = round(cfg.sac.batch_size * cfg.sac.real_ratio)

@@ -333,7 +333,7 @@ def test_a_resume_follows_its_own_target_setting(tmp_path, hopper_dataset):
 
 
 def test_value_bound_reads_the_datas_largest_reward(tmp_path, hopper_dataset):
-    """The ceiling on the critics' target is set from the data the run trains on, and reported while it binds."""
+    """The ceiling on the critics' target is set from the data the run trains on, and its clipped share reported."""
     recorder = Recorder()
     t = Trainer(hopper_dataset, _config("mbpo", epochs=1, sac={"value_bound": True}), tmp_path, recorder)
     assert t.sac.max_reward == float(hopper_dataset.rewards.max())
