@@ -38,6 +38,10 @@ def static_ratios(scores: np.ndarray, evaluations: int, draws: int, rng: np.rand
     return ratios
 
 
+def number(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
 def measure(run_dir: Path, which: str, repeats: int, evaluations: int, draws: int) -> dict:
     exported = run_dir / "policy" / which
     summary = json.loads((exported / "metadata.json").read_text())  # the run's scores as of its last export
@@ -47,10 +51,12 @@ def measure(run_dir: Path, which: str, repeats: int, evaluations: int, draws: in
     scores = np.array([evaluate(policy, env, episodes=10, seed=1_000_000 + 100 * k).normalized_score
                        for k in range(repeats)])
     ratios = static_ratios(scores, evaluations, draws, np.random.default_rng(0))
+    ratios = ratios[np.isfinite(ratios)]  # runs whose best is not positive have no ratio
     return {"run": str(run_dir), "env": env, "which": which, "scores": scores.tolist(),
             "mean": float(scores.mean()), "std": float(scores.std(ddof=1)),
-            "static_ratio_median": float(np.nanmedian(ratios)),
-            "static_below_bar": float(np.nanmean(ratios < BAR)), "run_final": summary.get("final_score"),
+            "static_ratio_median": float(np.median(ratios)) if ratios.size else None,
+            "static_below_bar": float(np.mean(ratios < BAR)) if ratios.size else None,
+            "run_final": summary.get("final_score"),
             "run_best": summary.get("best_score")}
 
 
@@ -76,8 +82,8 @@ def main() -> None:
         scores = np.array(r["scores"])
         run = os.path.join(*Path(r["run"]).parts[-3:])
         lines.append(f"| {run} | {r['which']} | {r['mean']:.1f} ± {r['std']:.1f} | "
-                     f"{scores.min():.1f}-{scores.max():.1f} | {r['static_ratio_median']:.2f} | "
-                     f"{100 * r['static_below_bar']:.0f} % | "
+                     f"{scores.min():.1f}-{scores.max():.1f} | {number(r['static_ratio_median'], '.2f')} | "
+                     f"{number(r['static_below_bar'], '.0%')} | "
                      f"{r['run_final']:.1f} / {r['run_best']:.1f} |")
     (args.out / "evaluation_noise.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
