@@ -84,7 +84,7 @@ def main() -> None:
         lines.append(f"| {run} | {r['which']} | {r['mean']:.1f} ± {r['std']:.1f} | "
                      f"{scores.min():.1f}-{scores.max():.1f} | {number(r['static_ratio_median'], '.2f')} | "
                      f"{number(r['static_below_bar'], '.0%')} | "
-                     f"{r['run_final']:.1f} / {r['run_best']:.1f} |")
+                     f"{number(r['run_final'], '.1f')} / {number(r['run_best'], '.1f')} |")
     (args.out / "evaluation_noise.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
