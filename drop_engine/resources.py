@@ -22,7 +22,7 @@ TRAINED = 4  # copies of a trained parameter: its value, its gradient and Adam's
 SAC_METRICS = 6  # losses of the critic, actor and temperature, alpha, Q mean, entropy
 ROLLOUT_METRICS = 7  # penalty mean, std, max and share, reward mean, length mean, model buffer size
 DIAG_METRICS = 4  # ensemble disagreement and reward on data and on model rows
-DICE_METRICS = 4  # objective, tau mean, std and negative share on the data
+DICE_METRICS = 4  # objective, tau mean, std and negative share on the data; and the averaged tau's mean if averaged
 TAU_METRICS = 3  # tau mean, min and max on the rollouts
 
 
@@ -61,11 +61,13 @@ def parameter_counts(cfg: TrainConfig, shape: DataShape) -> dict[str, int]:
         "dynamics": dyn.members * (_linear([obs + act] + [dyn.hidden] * dyn.layers) + 2 * _linear([dyn.hidden, out]))
         + 2 * out,
         "actor": _linear([obs, *cfg.sac.hidden, 2 * act]),  # mean and log-std heads
-        "critic": 2 * _linear([obs + act, *cfg.sac.hidden, 1]),
+        # two critics, each hidden layer with a layer norm's weight and bias if on
+        "critic": 2 * (_linear([obs + act, *cfg.sac.hidden, 1]) + cfg.sac.critic_layer_norm * 2 * sum(cfg.sac.hidden)),
         "dice": 0,
     }
-    if cfg.algorithm == "drop":  # tau and f per elite, plus nu
-        counts["dice"] = 2 * dyn.elites * _linear([obs + act, *cfg.dice.hidden, 1]) + dyn.elites
+    if cfg.algorithm == "drop":  # tau and f per elite (and tau's average if averaged), plus nu
+        nets = 2 + (cfg.dice.average < 1)
+        counts["dice"] = nets * dyn.elites * _linear([obs + act, *cfg.dice.hidden, 1]) + dyn.elites
     return counts
 
 
@@ -112,7 +114,7 @@ def _metric_rows(cfg: TrainConfig) -> int:
     flushes = epochs * steps // every + epochs - epochs // (every // gcd(steps, every))
     starts = epochs * (ROLLOUT_METRICS + DIAG_METRICS + TAU_METRICS * drop)
     if drop:
-        starts += DICE_METRICS * ((cfg.dice.pretrain_steps > 0) + (epochs - 1) * (cfg.dice.steps_per_epoch > 0))
+        starts += (DICE_METRICS + (cfg.dice.average < 1)) * ((cfg.dice.pretrain_steps > 0) + (epochs - 1) * (cfg.dice.steps_per_epoch > 0))
     # rollout, sac, epochs (and dice) every epoch; evaluate from the first evaluation on
     timings = epochs * (3 + drop) + epochs - min(cfg.eval_every, epochs) + 1
     fit = 2 * (cfg.sac.target_entropy == "data")
@@ -122,7 +124,8 @@ def _metric_rows(cfg: TrainConfig) -> int:
 def estimate(cfg: TrainConfig, shape: DataShape) -> ResourceEstimate:
     """The resources `cfg` takes on a dataset of this shape."""
     params = parameter_counts(cfg, shape)
-    # the dynamics keep each member's best snapshot, SAC a target critic
+    # the dynamics keep each member's best snapshot, SAC a target critic; tau's average, where on, is counted as
+    # trained (an upper bound by three copies of one small network)
     parameter_floats = ((TRAINED + 1) * (params["dynamics"] + params["critic"])
                         + TRAINED * (params["actor"] + params["dice"]))
     data_floats = 2 * shape.rows * shape.row_floats

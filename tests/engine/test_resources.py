@@ -47,7 +47,8 @@ class _Rows(Callback):
 @pytest.mark.parametrize("algorithm", ["drop", "mopo", "mbpo"])
 @pytest.mark.parametrize("overrides", [{"log_every": 3}, {"log_every": 7, "sac.bc_weight": 0.5,
                                                            "dice.steps_per_epoch": 0, "sac.target_entropy": "data",
-                                                           "sac.behaviour_fit_steps": 200, "sac.value_bound": True}])
+                                                           "sac.behaviour_fit_steps": 200, "sac.value_bound": True,
+                                                           "sac.critic_layer_norm": True, "dice.average": 0.1}])
 def test_counts_match_a_real_run(tmp_path, hopper_dataset, algorithm, overrides):
     """Networks as built and metric rows as reported; patience past max_epochs fixes the dynamics epochs."""
     cfg = build_config(algorithm, env="hopper", preset="smoke", task="medium",
