@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from drop_engine.bc import evaluate_actor, train_bc
-from drop_engine.config import build_config
+from drop_engine.config import build_config, parse_override
 from drop_engine.data import load_dataset
 from drop_engine.run_log import RunLog
 from drop_engine.scores import FINAL_WINDOW
@@ -68,7 +68,7 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
         record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": [],
                   "bc": bc_setting(args.bc_steps)}
     else:
-        overrides = dict(kv.split("=", 1) for kv in args.set)
+        overrides = dict(parse_override(kv) for kv in args.set)
         cfg = build_config(algorithm, env=env, preset=args.preset, task=kind, overrides=overrides, seed=seed,
                            device=args.device)
         result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)

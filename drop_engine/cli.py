@@ -9,7 +9,7 @@ from typing import get_args
 
 import click
 
-from .config import PRESETS, Algorithm, build_config
+from .config import PRESETS, Algorithm, build_config, parse_override
 from .errors import ConfigError
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
@@ -49,20 +49,17 @@ def run(group: click.Group, argv: list[str] | None = None) -> int:
 
 
 class Override(click.ParamType):
-    """KEY=VALUE with VALUE parsed as JSON when it is JSON (numbers, lists, booleans), else kept as a string."""
+    """A config override on the command line, read by `parse_override`."""
 
     name = "KEY=VALUE"
 
     def convert(self, value, param, ctx) -> tuple[str, object]:
         if isinstance(value, tuple):
             return value
-        if "=" not in value:
-            self.fail(f"{value!r} is not KEY=VALUE", param, ctx)
-        key, raw = value.split("=", 1)
         try:
-            return key, json.loads(raw)
-        except json.JSONDecodeError:
-            return key, raw
+            return parse_override(value)
+        except ConfigError as exc:
+            self.fail(str(exc), param, ctx)
 
 
 def write_curve(run_dir: Path) -> Path:

@@ -7,6 +7,7 @@ the result, so a bad override is rejected before any work starts.
 """
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any, Literal, Mapping, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -274,6 +275,18 @@ def _nest(overrides: Mapping[str, Any]) -> dict:
                 raise ConfigError(f"override {key!r} conflicts with another override")
         node[parts[-1]] = value
     return nested
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """KEY=VALUE with VALUE parsed as JSON when it is JSON (numbers, lists, booleans, null), else kept as a string:
+    the one reading of an override on every command line."""
+    if "=" not in text:
+        raise ConfigError(f"{text!r} is not KEY=VALUE")
+    key, raw = text.split("=", 1)
+    try:
+        return key, json.loads(raw)
+    except json.JSONDecodeError:
+        return key, raw
 
 
 def build_config(

@@ -114,7 +114,8 @@ def _metric_rows(cfg: TrainConfig) -> int:
     flushes = epochs * steps // every + epochs - epochs // (every // gcd(steps, every))
     starts = epochs * (ROLLOUT_METRICS + DIAG_METRICS + TAU_METRICS * drop)
     if drop:
-        starts += (DICE_METRICS + (cfg.dice.average < 1)) * ((cfg.dice.pretrain_steps > 0) + (epochs - 1) * (cfg.dice.steps_per_epoch > 0))
+        reports = (cfg.dice.pretrain_steps > 0) + (epochs - 1) * (cfg.dice.steps_per_epoch > 0)
+        starts += (DICE_METRICS + (cfg.dice.average < 1)) * reports
     # rollout, sac, epochs (and dice) every epoch; evaluate from the first evaluation on
     timings = epochs * (3 + drop) + epochs - min(cfg.eval_every, epochs) + 1
     fit = 2 * (cfg.sac.target_entropy == "data")

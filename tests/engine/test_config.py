@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import PRESETS, TrainConfig, build_config
+from drop_engine.config import PRESETS, TrainConfig, build_config, parse_override
 from drop_engine.errors import ConfigError
 
 
@@ -128,3 +128,16 @@ def test_non_finite_numbers_are_refused_by_name(overrides, field):
     with pytest.raises(ConfigError) as info:
         build_config("drop", env="hopper", preset="cpu", overrides=overrides)
     assert str(info.value).startswith(f"{field}: Input should be a finite number")
+
+
+def test_overrides_read_json_values_and_keep_the_rest_as_text():
+    """One reading for `drop train --set`, the remote `--set` and the paper table's `--set`: a list stays a list and
+    null is None, so `sac.hidden=[64,64]` means the same everywhere."""
+    assert parse_override("sac.hidden=[64,64]") == ("sac.hidden", [64, 64])
+    assert parse_override("sac.value_bound=true") == ("sac.value_bound", True)
+    assert parse_override("sac.target_entropy=data") == ("sac.target_entropy", "data")
+    assert parse_override("note=a=b") == ("note", "a=b")
+    cfg = build_config("drop", env="hopper", overrides=dict([parse_override("sac.hidden=[64,64]")]))
+    assert cfg.sac.hidden == (64, 64)
+    with pytest.raises(ConfigError, match="'epochs' is not KEY=VALUE"):
+        parse_override("epochs")
