@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drop_engine.atomic import write_text
 from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import build_config, parse_override
 from drop_engine.data import load_dataset
@@ -78,7 +79,7 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
                   "evaluations": result.evaluations, "dynamics": result.dynamics}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
                    "seconds": time.perf_counter() - start})
-    done.write_text(json.dumps(record, indent=2))
+    write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
     return record
 
 
@@ -180,9 +181,7 @@ def main(argv: list[str] | None = None) -> int:
                       if record is None or not (r["setting"] == same_setting and key(r) == key(record))]
             merged += [{**record, "setting": same_setting}] if record else []
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
-            tmp = results.with_suffix(".tmp")  # renamed in whole: a reader never sees half a file
-            tmp.write_text(json.dumps({"behaviour": scores, "records": merged}, indent=2))
-            tmp.replace(results)
+            write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
         mine = sorted((r for r in on_file(merged, scores) if r["setting"] == same_setting and current(r, bc)),
                       key=key)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine}

@@ -20,10 +20,18 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def write_text(path: str | Path, text: str) -> None:
+    """Replace a text file in whole: for files that are read back (a run's summary, its logs cut back on resume)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
 def save_durably(obj, path: str | Path) -> None:
-    """torch.save through a temporary name with fsync before the rename: after a crash the previous file is intact."""
+    """torch.save through a temporary name with fsync before the rename: after a crash the previous file is intact.
+    The directory is made if missing."""
     import torch
 
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
         torch.save(obj, handle)
         handle.flush()

@@ -34,7 +34,6 @@ def save_checkpoint(state: dict, directory: str | Path, epoch: int, step: int, k
     """Write to a temporary name, fsync, rename: a crash never leaves a half-written checkpoint under a real name, and
     a failed write (a full disk) leaves no file at all."""
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
     path = directory / checkpoint_name(epoch, step)
     save_durably(state, path)
     for old in list_checkpoints(directory)[:-keep]:

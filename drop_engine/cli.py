@@ -9,6 +9,7 @@ from typing import get_args
 
 import click
 
+from .atomic import write_text
 from .config import PRESETS, Algorithm, build_config, parse_override
 from .errors import ConfigError
 
@@ -126,7 +127,7 @@ def train(dataset: str, env: str, algorithm: str, preset: str, task: str | None,
     finally:
         getattr(progress, "close", lambda: None)()
     summary = result.to_dict()
-    Path(out, "summary.json").write_text(json.dumps({**summary, "config": config.model_dump(mode="json")}, indent=2))
+    write_text(Path(out, "summary.json"), json.dumps({**summary, "config": config.model_dump(mode="json")}, indent=2))
     write_curve(Path(out))
     keys = ("status", "epochs", "last_return", "last_score", "best_score", "best_epoch", "final_score", "policy",
             "timings")
@@ -269,7 +270,7 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int |
     print(summary_table(rows))
     print(f"wall time: {time.time() - started:.0f} s this invocation; SAC training {rows[0]['train_seconds']:.0f} s "
           f"over all invocations, recording {rows[0]['record_seconds']:.0f} s")
-    Path(out, f"{online.env}-summary.json").write_text(json.dumps(rows, indent=2))
+    write_text(Path(out, f"{online.env}-summary.json"), json.dumps(rows, indent=2))
     return 0
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .atomic import atomic_path
+from .atomic import atomic_path, write_text
 from .sac import Actor
 
 
@@ -41,8 +41,7 @@ def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str
         scripted.save(str(tmp))
     with atomic_path(paths["state_dict"]) as tmp:
         torch.save(policy.state_dict(), tmp)
-    with atomic_path(paths["metadata"]) as tmp:
-        tmp.write_text(json.dumps(metadata, indent=2, default=str))
+    write_text(paths["metadata"], json.dumps(metadata, indent=2, default=str))
     return paths
 
 

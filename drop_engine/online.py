@@ -176,11 +176,6 @@ class History:
         self.n = n
 
 
-def atomic_save(state: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_durably(state, path)
-
-
 def actor_fn(actor: Actor, deterministic: bool) -> Callable[[np.ndarray], np.ndarray]:
     """numpy batch in, numpy actions out; stochastic actions draw from torch's global RNG."""
 
@@ -275,7 +270,7 @@ class OnlineSAC:
     def save(self) -> Path:
         now = time.perf_counter()
         self.seconds, self._clock = self.seconds + now - self._clock, now
-        atomic_save(self.state_dict(), self.checkpoint_path)
+        save_durably(self.state_dict(), self.checkpoint_path)
         return self.checkpoint_path
 
     # ------------------------------------------------------------------ training

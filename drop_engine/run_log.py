@@ -3,11 +3,13 @@ and wall time) and `evaluations.csv`, so CLI and benchmark runs can be plotted a
 from __future__ import annotations
 
 import csv
+import io
 import json
 import time
 from pathlib import Path
 from typing import Mapping
 
+from .atomic import write_text
 from .callbacks import Callback
 from .plots import Curve
 
@@ -40,19 +42,18 @@ class RunLog(Callback):
         last_step = -float("inf") if resumed is None else resumed[0] * self.steps_per_epoch + resumed[1]
         last_epoch = -1 if resumed is None else resumed[0]
         kept = [m for m in self._read_metrics() if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
-        self.metrics_path.write_text("".join(json.dumps(m) + "\n" for m in kept))
+        write_text(self.metrics_path, "".join(json.dumps(m) + "\n" for m in kept))
         rows = [r for r in self.read_evaluations(self.evaluations_path) if int(r["epoch"]) <= last_epoch]
-        with self.evaluations_path.open("w", newline="") as f:
-            writer = csv.DictWriter(f, EVALUATION_FIELDS)
-            writer.writeheader()
-            writer.writerows(rows)
+        table = io.StringIO(newline="")
+        writer = csv.DictWriter(table, EVALUATION_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+        write_text(self.evaluations_path, table.getvalue())
 
     def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
         sizes = [p.stat().st_size if p.exists() else 0 for p in (self.metrics_path, self.evaluations_path)]
         marks = {**self._marks(), f"{epoch}:{step}": sizes}
-        tmp = self.marks_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(marks))
-        tmp.replace(self.marks_path)
+        write_text(self.marks_path, json.dumps(marks))
 
     def _marks(self) -> dict[str, list[int]]:
         return json.loads(self.marks_path.read_text()) if self.marks_path.exists() else {}
