@@ -49,11 +49,6 @@ class Dataset:
         """The version of the gymnasium id the file records, e.g. v5 for 'Hopper-v5'; None without one."""
         return gym_version(_recorded_env(self.attrs))
 
-    @property
-    def episodes(self) -> int:
-        ends = np.logical_or(self.terminals, self.timeouts)
-        return int(ends.sum()) + int(len(self) > 0 and not ends[-1])
-
     @cached_property
     def content_hash(self) -> str:
         """sha256 of the arrays a trained model depends on (names, dtypes, shapes and bytes); computed once, as the
@@ -64,13 +59,6 @@ class Dataset:
             digest.update(f"{name}:{array.dtype.str}:{array.shape};".encode())
             digest.update(memoryview(array).cast("B"))
         return digest.hexdigest()
-
-    def episode_returns(self) -> np.ndarray:
-        ends = np.flatnonzero(np.logical_or(self.terminals, self.timeouts))
-        bounds = np.concatenate([[0], ends + 1])
-        if bounds[-1] < len(self):
-            bounds = np.append(bounds, len(self))
-        return np.add.reduceat(self.rewards, bounds[:-1]) if len(bounds) > 1 else np.zeros(0)
 
 
 @dataclass
@@ -215,7 +203,8 @@ def scan(path: str | Path, limits: DatasetLimits = DatasetLimits(), block_bytes:
 
 
 def describe(dataset: Dataset) -> DatasetReport:
-    """The report the service returns for an upload."""
+    """The upload report of a dataset in memory: the reference that `scan`, which the service runs on uploads without
+    loading them whole, must match."""
     tally = _Tally()
     tally.add(dataset)
     return tally.report(dataset.obs_dim, dataset.act_dim, dataset.attrs, list(dataset.warnings))

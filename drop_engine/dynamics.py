@@ -34,7 +34,8 @@ class GaussianEnsemble(nn.Module):
         self.register_buffer("in_std", torch.ones(in_dim))
         self.register_buffer("elites", torch.arange(cfg.elites))
         decays = list(cfg.weight_decay)
-        # One decay per hidden layer (the last value repeats if there are more layers), then the heads at 1e-4.
+        # One decay per hidden layer (the second-to-last value repeats if there are more layers), then the last value
+        # for both heads (1e-4 by default, as the official code).
         self.decays = [decays[min(i, len(decays) - 2)] for i in range(cfg.layers)] + [decays[-1], decays[-1]]
 
     def set_normalizer(self, norm: Normalizer) -> None:

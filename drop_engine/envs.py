@@ -61,17 +61,6 @@ def get_env(name: str) -> EnvSpec:
     return ENVS[key]
 
 
-def termination_fn(name: str) -> TerminationFn:
-    """The env's termination function; unknown envs never terminate (with a warning)."""
-    try:
-        return get_env(name).termination
-    except KeyError:
-        warnings.warn(f"no termination function for {name!r}: model rollouts never terminate", stacklevel=2)
-        from .termination import never_done
-
-        return never_done
-
-
 def gym_version(gym_id: str) -> EnvVersion | None:
     """The version of a gymnasium id ('Hopper-v5' -> 'v5'), if it is one drop-rl makes; None for any other id."""
     name, _, version = gym_id.rpartition("-")

@@ -47,28 +47,24 @@ class EnsembleLayerNorm(nn.Module):
 
 
 class EnsembleMLP(nn.Module):
-    """M MLPs with the same shape; returns (M, N, out) and optionally the last hidden features. With `layer_norm`
-    each hidden layer is linear, then layer norm, then the activation."""
+    """M ReLU MLPs with the same shape, run as one batched matmul per layer; returns (M, N, out). With `layer_norm`
+    each hidden layer is linear, then layer norm, then ReLU."""
 
-    def __init__(self, members: int, in_dim: int, hidden: Sequence[int], out_dim: int,
-                 activation: type[nn.Module] = nn.ReLU, layer_norm: bool = False):
+    def __init__(self, members: int, in_dim: int, hidden: Sequence[int], out_dim: int, layer_norm: bool = False):
         super().__init__()
         sizes = [in_dim, *hidden]
         self.hidden = nn.ModuleList(EnsembleLinear(members, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         self.norms = nn.ModuleList(EnsembleLayerNorm(members, b) for b in sizes[1:]) if layer_norm else None
-        self.act = activation()
+        self.act = nn.ReLU()
         self.out = EnsembleLinear(members, sizes[-1], out_dim)
 
-    def features(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         for i, layer in enumerate(self.hidden):
             x = layer(x)
             if self.norms is not None:
                 x = self.norms[i](x)
             x = self.act(x)
-        return x
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.out(self.features(x))
+        return self.out(x)
 
 
 def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from drop_engine.collect import collect_transitions, random_policy
-from drop_engine.envs import ENVS, EnvName, get_env, termination_fn
+from drop_engine.envs import ENVS, EnvName, get_env
 
 
 @pytest.mark.parametrize("env", ["hopper", "walker2d", "halfcheetah"])
@@ -42,12 +42,6 @@ def test_normalized_score_endpoints():
     assert get_env("Hopper-v5").gym_id("v5") == "Hopper-v5"
     with pytest.raises(KeyError):
         get_env("ant")
-
-
-def test_unknown_env_never_terminates_with_warning():
-    with pytest.warns(UserWarning):
-        fn = termination_fn("ant")
-    assert not fn(torch.zeros(4, 2), torch.zeros(4, 1), torch.full((4, 2), 1e9)).any()
 
 
 @pytest.mark.parametrize("env", ["hopper", "walker2d", "halfcheetah"])
