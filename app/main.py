@@ -100,4 +100,5 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
                     await listener
             await fast_reads.close()
         finally:
+            engine.dispose()  # the pool's connections now, not when the app is collected
             flush_access()

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from .data import Dataset, Normalizer
+from .envs import DEFAULT_VERSION, EnvVersion
 from .evaluation import Evaluation, evaluate
 from .nn import adam
 from .sac import ACTION_EDGE, Actor
@@ -77,7 +78,8 @@ def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: Sto
     return float(nll.mean())
 
 
-def evaluate_actor(actor: Actor, env: str, episodes: int, seed: int, version: str = "v4") -> Evaluation:
+def evaluate_actor(actor: Actor, env: str, episodes: int, seed: int,
+                   version: EnvVersion = DEFAULT_VERSION) -> Evaluation:
     def policy(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return actor.act(torch.as_tensor(obs), deterministic=True).numpy()

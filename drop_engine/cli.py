@@ -11,10 +11,11 @@ import click
 
 from .atomic import write_text
 from .config import PRESETS, Algorithm, build_config, parse_override
+from .envs import DEFAULT_VERSION, VERSIONS
 from .errors import ConfigError
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
-ENV_VERSIONS = click.Choice(["v4", "v5"])
+ENV_VERSIONS = click.Choice(VERSIONS)
 
 
 class _Command(click.Command):
@@ -186,7 +187,7 @@ def diagnose(runs: tuple[str, ...], every: int, keys: tuple[str, ...]) -> int:
 @click.option("--seed", type=int, default=0, show_default=True)
 def evaluate(policy: str, env: str | None, env_version: str | None, episodes: int, seed: int) -> int:
     """Evaluate an exported policy in the real env it was trained for."""
-    from .envs import DEFAULT_VERSION, gym_version
+    from .envs import gym_version
     from .evaluation import evaluate as run_episodes
     from .export import load_policy
 
@@ -217,7 +218,7 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
               help="env steps between evaluations and checkpoints")
 @click.option("--eval-episodes", type=int, default=10, show_default=True)
 @click.option("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
-@click.option("--env-version", default="v4", show_default=True, type=ENV_VERSIONS)
+@click.option("--env-version", default=DEFAULT_VERSION, show_default=True, type=ENV_VERSIONS)
 @click.option("--num-envs", type=int, default=8, show_default=True, help="envs stepped side by side while recording")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
               help="torch intra-op threads; part of what makes the files: the same seed at another thread count sums "

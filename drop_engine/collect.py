@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from .data import from_arrays, save_hdf5
-from .envs import get_env, make_env
+from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
 from .online import OnlineConfig, OnlineSAC, actor_fn
 from .stopping import Stopped, check
 
@@ -42,8 +42,9 @@ def random_policy(act_dim: int, seed: int) -> BehaviourPolicy:
     return lambda obs: rng.uniform(-1.0, 1.0, size=(len(obs), act_dim)).astype(np.float32)
 
 
-def collect_transitions(env: str, policy: BehaviourPolicy, transitions: int, seed: int = 0, version: str = "v4",
-                        num_envs: int = 1, progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+def collect_transitions(env: str, policy: BehaviourPolicy, transitions: int, seed: int = 0,
+                        version: EnvVersion = DEFAULT_VERSION, num_envs: int = 1,
+                        progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Step `num_envs` envs side by side (one policy call per step on their batch) until `transitions` rows are done.
 
     Rows are stored episode by episode, so consecutive rows of an episode stay consecutive as D4RL needs; episodes
@@ -51,39 +52,41 @@ def collect_transitions(env: str, policy: BehaviourPolicy, transitions: int, see
     qpos/qvel are the MuJoCo state of each row's observation. `progress(rows)` reports finished rows.
     """
     envs = [make_env(env, version) for _ in range(num_envs)]
-    resets = 0
-    obs = []
-    for e in envs:
-        obs.append(e.reset(seed=seed + resets)[0])
-        resets += 1
-    obs = np.asarray(obs, np.float32)
-    running: list[dict[str, list]] = [{k: [] for k in KEYS} for _ in envs]
-    done: list[dict[str, list]] = []
-    rows = 0
-    while rows < transitions:
-        acts = np.asarray(policy(obs), dtype=np.float32)
-        for i, e in enumerate(envs):
-            data, ep = e.unwrapped.data, running[i]
-            ep["infos/qpos"].append(data.qpos.copy())
-            ep["infos/qvel"].append(data.qvel.copy())
-            next_obs, rew, terminated, truncated, _ = e.step(acts[i])
-            for key, value in (("observations", obs[i].copy()), ("actions", acts[i]), ("rewards", rew),
-                               ("next_observations", next_obs), ("terminals", terminated),
-                               ("timeouts", truncated and not terminated)):
-                ep[key].append(value)
-            obs[i] = next_obs
-            if terminated or truncated:
-                done.append(ep)
-                rows += len(ep["rewards"])
-                running[i] = {k: [] for k in KEYS}
-                obs[i] = e.reset(seed=seed + resets)[0]
-                resets += 1
-                if progress is not None:
-                    progress(min(rows, transitions))
-                if rows >= transitions:
-                    break
-    for e in envs:
-        e.close()
+    try:
+        resets = 0
+        obs = []
+        for e in envs:
+            obs.append(e.reset(seed=seed + resets)[0])
+            resets += 1
+        obs = np.asarray(obs, np.float32)
+        running: list[dict[str, list]] = [{k: [] for k in KEYS} for _ in envs]
+        done: list[dict[str, list]] = []
+        rows = 0
+        while rows < transitions:
+            acts = np.asarray(policy(obs), dtype=np.float32)
+            for i, e in enumerate(envs):
+                data, ep = e.unwrapped.data, running[i]
+                ep["infos/qpos"].append(data.qpos.copy())
+                ep["infos/qvel"].append(data.qvel.copy())
+                next_obs, rew, terminated, truncated, _ = e.step(acts[i])
+                for key, value in (("observations", obs[i].copy()), ("actions", acts[i]), ("rewards", rew),
+                                   ("next_observations", next_obs), ("terminals", terminated),
+                                   ("timeouts", truncated and not terminated)):
+                    ep[key].append(value)
+                obs[i] = next_obs
+                if terminated or truncated:
+                    done.append(ep)
+                    rows += len(ep["rewards"])
+                    running[i] = {k: [] for k in KEYS}
+                    obs[i] = e.reset(seed=seed + resets)[0]
+                    resets += 1
+                    if progress is not None:
+                        progress(min(rows, transitions))
+                    if rows >= transitions:
+                        break
+    finally:  # also when `progress` stops the collection
+        for e in envs:
+            e.close()
     out: dict[str, np.ndarray] = {}
     for key in KEYS:
         dtype = bool if key in ("terminals", "timeouts") else np.float64 if key.startswith("infos/") else np.float32

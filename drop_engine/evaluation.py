@@ -6,7 +6,7 @@ from typing import Callable
 
 import numpy as np
 
-from .envs import get_env, make_env
+from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
 from .stopping import StopFlag, check, never
 
 PolicyFn = Callable[[np.ndarray], np.ndarray]
@@ -21,7 +21,7 @@ class Evaluation:
     lengths: list[int]
 
 
-def evaluate(policy: PolicyFn, env: str, episodes: int = 10, seed: int = 0, version: str = "v4",
+def evaluate(policy: PolicyFn, env: str, episodes: int = 10, seed: int = 0, version: EnvVersion = DEFAULT_VERSION,
              should_stop: StopFlag = never) -> Evaluation:
     """Run `episodes` deterministic episodes; env i is reset with seed + i, so results are reproducible.
 

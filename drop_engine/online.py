@@ -23,7 +23,7 @@ from pydantic import ValidationError
 
 from .atomic import save_durably
 from .config import SACConfig
-from .envs import get_env, make_env
+from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
 from .evaluation import evaluate
 from .replay_buffer import ReplayBuffer
 from .sac import SAC, Actor
@@ -35,7 +35,7 @@ CHECKPOINT_NAME = "online.pt"
 @dataclass
 class OnlineConfig:
     env: str = "hopper"
-    version: str = "v4"
+    version: EnvVersion = DEFAULT_VERSION
     seed: int = 0
     # Default: the env's `collect_steps`. One SAC update (256-256, batch 256) costs ~12-20 ms on one core and an env
     # step ~0.1-0.3 ms, so 200k steps take 40-75 min.
@@ -212,10 +212,14 @@ class OnlineSAC:
         self.seconds = 0.0  # training wall time over all invocations
         self._clock = time.perf_counter()
         self.physics.reset(seed=cfg.seed)
-        state = self._load()
-        if state is not None:
-            self.load_state_dict(state)
-            self.resumed = True
+        try:
+            state = self._load()
+            if state is not None:
+                self.load_state_dict(state)
+                self.resumed = True
+        except BaseException:  # a checkpoint of another run: nobody will close this half-made agent
+            self.physics.close()
+            raise
         self.buffer = ReplayBuffer(max(cfg.steps, self.history.n, 1), obs_dim, act_dim)
         if self.history.n:
             cols = self.history.state_dict()

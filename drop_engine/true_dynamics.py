@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .envs import make_env
+from .envs import DEFAULT_VERSION, EnvVersion, make_env
 
 
 def true_step(
     env: str, obs: np.ndarray, act: np.ndarray, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
-    version: str = "v4",
+    version: EnvVersion = DEFAULT_VERSION,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(rewards (N,), next observations (N, obs_dim)) of the real env for each row."""
     e = make_env(env, version)

@@ -99,7 +99,10 @@ class Heartbeat(threading.Thread):
                 log.exception("heartbeat for %s failed", self.job_id)
 
     def stop(self) -> None:
+        """Returns once a beat in flight has ended, so the thread does not outlive its job (bounded: a hung database
+        must not hold the worker)."""
         self.stopped.set()
+        self.join(timeout=self.every_s)
 
 
 def _fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:

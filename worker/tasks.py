@@ -51,16 +51,19 @@ def _reaper_loop(slots: int) -> None:
     engine = make_engine(settings.sqlalchemy_url)
     sessions = make_sessionmaker(engine)
     first, idle_since = True, None
-    while first or not _stop.wait(settings.reap_every_s):  # a pass at start-up picks up jobs a stopped worker left
-        first = False
-        # reserved_requests holds the jobs this worker has taken (running or waiting for a pool process).
-        idle_since = (idle_since or utcnow()) if len(state.reserved_requests) < slots else None
-        try:
-            sent = reap(sessions, settings, lambda job_id, rt: enqueue(celery, settings, job_id, rt), idle_since)
-            if sent:
-                log.warning("reaper re-sent jobs %s", ", ".join(sent))
-        except Exception:
-            log.exception("reaper pass failed")
+    try:
+        while first or not _stop.wait(settings.reap_every_s):  # a pass at start-up picks up jobs a stopped worker left
+            first = False
+            # reserved_requests holds the jobs this worker has taken (running or waiting for a pool process).
+            idle_since = (idle_since or utcnow()) if len(state.reserved_requests) < slots else None
+            try:
+                sent = reap(sessions, settings, lambda job_id, rt: enqueue(celery, settings, job_id, rt), idle_since)
+                if sent:
+                    log.warning("reaper re-sent jobs %s", ", ".join(sent))
+            except Exception:
+                log.exception("reaper pass failed")
+    finally:
+        engine.dispose()
 
 
 @setup_logging.connect

@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 import torch
 
+import drop_engine.collect
 from drop_engine.cli import main
 from drop_engine.collect import KINDS, CollectConfig, collect_datasets, collect_transitions, random_policy, read_arrays
 from drop_engine.config import SACConfig
 from drop_engine.data import describe, load_dataset
 from drop_engine.envs import get_env, make_env
 from drop_engine.online import OnlineConfig, OnlineSAC
+from drop_engine.stopping import Stopped
 
 SMALL = SACConfig(hidden=(64, 64), batch_size=64)
 
@@ -109,6 +111,26 @@ def test_collect_transitions_batches_envs_and_keeps_episodes_contiguous():
         inside = ~ends[:-1]
         np.testing.assert_array_equal(arrays["observations"][1:][inside], arrays["next_observations"][:-1][inside])
         assert ends[-1]
+
+
+def test_a_stopped_collection_closes_its_envs(monkeypatch):
+    """`progress` raises Stopped when the user stops `drop collect`: the MuJoCo envs are closed on the way out."""
+    made, closed = [], []
+
+    def tracked(*args):
+        env = make_env(*args)
+        made.append(env)
+        close = env.close
+        env.close = lambda: (closed.append(env), close())
+        return env
+
+    def stop(rows: int) -> None:
+        raise Stopped
+
+    monkeypatch.setattr(drop_engine.collect, "make_env", tracked)
+    with pytest.raises(Stopped):
+        collect_transitions("hopper", random_policy(3, seed=0), 5000, num_envs=3, progress=stop)
+    assert len(made) == 3 and closed == made
 
 
 def test_online_sac_refuses_a_value_bound_it_has_no_rewards_for():
