@@ -1,5 +1,5 @@
-"""`drop`, the one command: the engine's (train, plot, evaluate, collect), the service's (serve, api, worker, token,
-db) and those that drive a server from anywhere (datasets, jobs). It sits above all three packages it gathers."""
+"""`drop`, the one command: the engine's (train, plot, diagnose, evaluate, collect), the service's (serve, api, worker,
+token, db) and those that drive a server from anywhere (datasets, jobs). It sits above all three packages it gathers."""
 from __future__ import annotations
 
 import sys

@@ -13,6 +13,7 @@ from .atomic import write_text
 from .config import PRESETS, Algorithm, build_config, parse_override
 from .envs import DEFAULT_VERSION, VERSIONS
 from .errors import ConfigError
+from .policy_files import FILE_NAMES
 
 DEFAULT_MODEL_CACHE = "~/.cache/drop-rl/models"
 ENV_VERSIONS = click.Choice(VERSIONS)
@@ -191,7 +192,7 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
     from .evaluation import evaluate as run_episodes
     from .export import load_policy
 
-    meta_path = Path(policy).with_name("metadata.json")
+    meta_path = Path(policy).with_name(FILE_NAMES["metadata"])
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     env = env or meta.get("env") or "hopper"
     env_version = env_version or gym_version(meta.get("gym_id", "")) or DEFAULT_VERSION

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from .atomic import atomic_path, write_text
+from .policy_files import FILE_NAMES
 from .sac import Actor
 
 
@@ -32,8 +33,7 @@ def export_policy(actor: Actor, out_dir: str | Path, metadata: dict) -> dict[str
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     policy = DeterministicPolicy(copy.deepcopy(actor).cpu()).eval().requires_grad_(False)
-    paths = {"torchscript": out / "policy.pt", "state_dict": out / "policy_state_dict.pt",
-             "metadata": out / "metadata.json"}
+    paths = {fmt: out / FILE_NAMES[fmt] for fmt in ("torchscript", "state_dict", "metadata")}
     with warnings.catch_warnings():  # TorchScript is deprecated upstream but is still the one torch-only format
         warnings.simplefilter("ignore", DeprecationWarning)
         scripted = torch.jit.script(policy)

@@ -12,6 +12,7 @@ from typing import Mapping
 from .atomic import write_text
 from .callbacks import Callback
 from .plots import Curve
+from .policy_files import FILE_NAMES
 
 EVALUATION_FIELDS = ("epoch", "mean_return", "normalized_score", "time")
 
@@ -88,8 +89,8 @@ class NotARun(ValueError):
 def run_config(run_dir: Path) -> dict:
     """A run's config: from `summary.json` (drop train), an exported policy's metadata, or else its newest checkpoint
     (slow: the whole state is loaded)."""
-    for path in (run_dir / "summary.json", run_dir / "policy" / "last" / "metadata.json",
-                 run_dir / "policy" / "metadata.json"):
+    for path in (run_dir / "summary.json", run_dir / "policy" / "last" / FILE_NAMES["metadata"],
+                 run_dir / "policy" / FILE_NAMES["metadata"]):
         if path.is_file() and (config := json.loads(path.read_text()).get("config")):
             return config
     from .checkpoint import load_latest

@@ -7,11 +7,11 @@ the data's behaviour entropy is then estimated, once, from a forked RNG stream.
 Order of one epoch: train the DICE estimators (DROP only; pretraining on epoch 0), roll the policy out from
 `rollout.batch_size` offline start states into the FIFO model buffer, then `steps_per_epoch` SAC updates on batches
 mixing real and model transitions, then evaluate every `eval_every` epochs. The whole state, RNGs included, is
-checkpointed at epoch ends and whenever the caller asks to stop, so a resumed run continues the same number stream.
-The caller's stop flag is asked inside every long phase (`stopping.py`); a stop part-way through one checkpoints the
-state as of the boundary before it (the epoch's start, or the end of its SAC steps), and a stop while the dynamics are
-fitted writes nothing, as there is nothing to resume yet. An evaluation can peak mid-run, so the actor of the best
-evaluation is kept too (in the checkpoint) and exported beside the last one.
+checkpointed every `checkpoint_every` epochs, after the last, and whenever the caller asks to stop, so a resumed run
+continues the same number stream. The caller's stop flag is asked inside every long phase (`stopping.py`); a stop
+part-way through one checkpoints the state as of the boundary before it (the epoch's start, or the end of its SAC
+steps), and a stop while the dynamics are fitted writes nothing, as there is nothing to resume yet. An evaluation can
+peak mid-run, so the actor of the best evaluation is kept too (in the checkpoint) and exported beside the last one.
 """
 from __future__ import annotations
 

@@ -9,11 +9,16 @@
 """
 from __future__ import annotations
 
+from typing import Callable
+
 from celery import Celery
 
 from .settings import Settings
 
 TASK_RUN_JOB = "drop.run_job"
+# Sends a job (id, max runtime in seconds) to the workers: the API after creating it, the reaper re-sending it. Both
+# take it as a parameter, so tests can record what was sent.
+Enqueue = Callable[[str, int], None]
 
 
 def make_celery(settings: Settings) -> Celery:

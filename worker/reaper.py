@@ -9,17 +9,16 @@ from __future__ import annotations
 
 import logging
 from datetime import datetime, timedelta
-from typing import Callable
 
-from sqlalchemy import select
+from sqlalchemy import exists, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.job_state import ATTEMPT, JobStatus, mark_sent, status_in, transition
-from kernel.models import Job, utcnow
+from kernel.models import Job, JobCheckpoint, utcnow
+from kernel.queue import Enqueue
 from kernel.settings import Settings
 
 log = logging.getLogger("drop.reaper")
-Enqueue = Callable[[str, int], None]
 
 
 def reap(sessions: sessionmaker[Session], settings: Settings, enqueue: Enqueue,
@@ -44,7 +43,8 @@ def _expire_dead(sessions: sessionmaker[Session], settings: Settings, now: datet
     """Re-queue (unsent, for the caller to send) or end the jobs whose worker stopped heartbeating."""
     stale = now - timedelta(seconds=settings.stale_after_s)
     with sessions() as s:
-        dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts)
+        checkpointed = exists().where(JobCheckpoint.job_id == Job.id).label("checkpointed")
+        dead = s.execute(select(Job.id, Job.status, Job.attempts, Job.max_attempts, checkpointed)
                          .where(status_in(ATTEMPT), Job.heartbeat_at < stale)).all()
     for row in dead:
         if row.status == JobStatus.CANCELLING:
@@ -56,7 +56,8 @@ def _expire_dead(sessions: sessionmaker[Session], settings: Settings, now: datet
             values = {"finished_at": now, "error_code": "worker_lost", "error_message": reason}
         else:
             to, values = JobStatus.QUEUED, {"worker": None, "enqueued_at": None}
-            message = f"re-queued: the worker of attempt {row.attempts} stopped responding; will resume from checkpoint"
+            then = "will resume from checkpoint" if row.checkpointed else "will start over (no checkpoint was written)"
+            message = f"re-queued: the worker of attempt {row.attempts} stopped responding; {then}"
         # Only the row as it was seen: the same status, still the same attempt, and still silent (a heartbeat
         # between the query and this UPDATE means its worker is alive).
         with sessions.begin() as s:

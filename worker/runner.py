@@ -122,11 +122,12 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int
     """An ONNX copy beside each exported policy (last and best). Best effort: a policy that cannot be expressed in ONNX
     still leaves TorchScript and state_dict."""
     from drop_engine.export import export_onnx
+    from drop_engine.policy_files import FILE_NAMES
 
     for which, files in result.policy.items():
         try:
             torchscript = Path(files["torchscript"])
-            files["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name("policy.onnx")))
+            files["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name(FILE_NAMES["onnx"])))
         except Exception as exc:
             log.exception("ONNX export of %s's %s policy failed", job_id, which)
             with sessions.begin() as s:

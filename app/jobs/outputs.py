@@ -12,6 +12,7 @@ from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
 from drop_engine.plots import learning_curve
+from drop_engine.policy_files import PolicyFormat
 from drop_engine.scores import Which
 from kernel.fast_reads import FastReads
 from kernel.job_state import FINAL
@@ -126,6 +127,6 @@ def jobs_get_policy(job_id: str, owner: OwnerId, s: DbSession, settings: AppSett
                                                               "of the evaluation with the highest normalised score "
                                                               "(the earlier of ties), chosen by evaluations in the "
                                                               "real env")] = "last",
-                    format: reads.PolicyFormat = "torchscript"):
+                    format: PolicyFormat = "torchscript"):
     path, media = reads.policy_file(s, owner, job_id, which, format, settings)
     return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}")

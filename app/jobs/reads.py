@@ -8,11 +8,11 @@ against the response model would only spend the time twice. The other reads take
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session, defer
 
+from drop_engine.policy_files import FILE_NAMES, PolicyFormat
 from drop_engine.scores import Which
 from kernel.fast_reads import FastReads
 from kernel.ids import is_id
@@ -25,11 +25,8 @@ from ..core.pages import fetch_page, page
 from ..core.problems import Problem
 from . import schemas
 
-PolicyFormat = Literal["torchscript", "state_dict", "onnx", "metadata"]
-POLICY_FILES = {"torchscript": ("policy.pt", "application/octet-stream"),
-                "state_dict": ("policy_state_dict.pt", "application/octet-stream"),
-                "onnx": ("policy.onnx", "application/octet-stream"),
-                "metadata": ("metadata.json", "application/json")}
+POLICY_FILES = {fmt: (name, "application/json" if fmt == "metadata" else "application/octet-stream")
+                for fmt, name in FILE_NAMES.items()}
 
 # The API never shows a job's `result` (the engine's full report), so it is not read.
 _JOB_COLUMNS = [c for c in Job.__table__.c if c.name != "result"]

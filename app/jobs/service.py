@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from typing import Callable
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -15,6 +14,7 @@ from kernel import job_state
 from kernel.ids import new_id
 from kernel.job_state import JobStatus, mark_sent, transition
 from kernel.models import Job, utcnow
+from kernel.queue import Enqueue
 from kernel.settings import Settings
 
 from ..core.problems import Problem
@@ -25,7 +25,6 @@ from .reads import owned_job
 from .request import JobRequest, build
 
 log = logging.getLogger("drop.api")
-Enqueue = Callable[[str, int], None]
 
 
 def _request_hash(req: JobRequest) -> str:

@@ -9,7 +9,7 @@ from sqlalchemy import select, update
 
 from kernel.db import make_engine, make_sessionmaker
 from kernel.ids import new_id
-from kernel.models import Job, JobEvent, Owner, utcnow
+from kernel.models import Job, JobCheckpoint, JobEvent, Owner, utcnow
 from worker.reaper import reap
 from worker.runner import claim
 
@@ -37,20 +37,27 @@ def test_reaper(sessions, own_settings):
         s.add(owner)
         s.flush()
         crashed = _job(s, owner.id, status="running", attempts=1, heartbeat_at=old, enqueued_at=old)
+        resumable = _job(s, owner.id, status="running", attempts=1, heartbeat_at=old, enqueued_at=old)
+        s.flush()
+        s.add(JobCheckpoint(job_id=resumable.id, epoch=3, step=0, path="ckpt-e000003-s000000.pt", size_bytes=1))
         last_try = _job(s, owner.id, status="running", attempts=2, heartbeat_at=old, enqueued_at=old)
         alive = _job(s, owner.id, status="running", attempts=1, heartbeat_at=utcnow(), enqueued_at=old)
         unsent = _job(s, owner.id, status="queued", attempts=0, created_at=old)
-        ids = [j.id for j in (crashed, last_try, alive, unsent)]
+        ids = [j.id for j in (crashed, resumable, last_try, alive, unsent)]
     sent: list[str] = []
     reaped = reap(sessions, own_settings, lambda job_id, runtime: sent.append(job_id))
-    assert sorted(reaped) == sorted([crashed.id, unsent.id])
-    assert sorted(sent) == sorted([crashed.id, unsent.id])
+    assert sorted(reaped) == sorted([crashed.id, resumable.id, unsent.id])
+    assert sorted(sent) == sorted([crashed.id, resumable.id, unsent.id])
     with sessions() as s:
         rows = {j.id: j for j in s.scalars(select(Job).where(Job.id.in_(ids)))}
         assert rows[crashed.id].status == "queued" and rows[crashed.id].enqueued_at is not None
         assert rows[last_try.id].status == "failed" and rows[last_try.id].error_code == "worker_lost"
         assert rows[alive.id].status == "running"
-        assert s.scalar(select(JobEvent.message).where(JobEvent.job_id == crashed.id)).startswith("re-queued")
+        # The event says what the next attempt will do: only a job with a checkpoint resumes.
+        message = s.scalar(select(JobEvent.message).where(JobEvent.job_id == crashed.id))
+        assert message.startswith("re-queued") and message.endswith("will start over (no checkpoint was written)")
+        assert s.scalar(select(JobEvent.message).where(JobEvent.job_id == resumable.id)).endswith(
+            "will resume from checkpoint")
     assert reap(sessions, own_settings, lambda *a: sent.append("again")) == []  # nothing left to do
 
     # The re-queued job can be claimed exactly once, as attempt 2.
