@@ -10,7 +10,6 @@ atomically, so a stopped run resumes the same number stream it would have produc
 """
 from __future__ import annotations
 
-import random
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
@@ -27,6 +26,7 @@ from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
 from .evaluation import evaluate
 from .replay_buffer import ReplayBuffer
 from .sac import SAC, Actor
+from .seeding import load_rng_state, rng_state, seed_everything
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_NAME = "online.pt"
@@ -193,9 +193,7 @@ class OnlineSAC:
         self.cfg = cfg
         self.out = Path(out_dir)
         self.spec = get_env(cfg.env)
-        random.seed(cfg.seed)
-        torch.manual_seed(cfg.seed)
-        self.rng = np.random.default_rng(cfg.seed)
+        self.rng = seed_everything(cfg.seed)
         self.physics = _Physics(cfg.env, cfg.version)
         obs_dim = self.physics.env.observation_space.shape[0]
         act_dim = self.physics.env.action_space.shape[0]
@@ -254,7 +252,7 @@ class OnlineSAC:
             "seconds": self.seconds, "sac": self.sac.state_dict(), "sac_optim": self.sac.optim_state(),
             "history": self.history.state_dict(), "physics": self.physics.state_dict(),
             "snapshots": [asdict(s) for s in self.snapshots], "medium": self.medium.step if self.medium else None,
-            "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state, "python": random.getstate()},
+            "rng": rng_state(self.rng),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -267,9 +265,7 @@ class OnlineSAC:
         self.physics.load_state_dict(state["physics"])
         self.snapshots = [Snapshot(**s) for s in state["snapshots"]]
         self.medium = next((s for s in self.snapshots if s.step == state["medium"]), None)
-        torch.set_rng_state(state["rng"]["torch"])
-        self.rng.bit_generator.state = state["rng"]["numpy"]
-        random.setstate(state["rng"]["python"])
+        load_rng_state(self.rng, state["rng"])
 
     def save(self) -> Path:
         now = time.perf_counter()

@@ -42,7 +42,8 @@ class RunLog(Callback):
         # next epoch was written yet and the steps do tell.
         last_step = -float("inf") if resumed is None else resumed[0] * self.steps_per_epoch + resumed[1]
         last_epoch = -1 if resumed is None else resumed[0]
-        kept = [m for m in self._read_metrics() if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
+        kept = [m for m in self.read_metrics(self.metrics_path)
+                if resumed is not None and (m["step"] <= last_step or m["step"] <= 0)]
         write_text(self.metrics_path, "".join(json.dumps(m) + "\n" for m in kept))
         rows = [r for r in self.read_evaluations(self.evaluations_path) if int(r["epoch"]) <= last_epoch]
         table = io.StringIO(newline="")
@@ -69,10 +70,11 @@ class RunLog(Callback):
             csv.DictWriter(f, EVALUATION_FIELDS).writerow(
                 {"epoch": epoch, "mean_return": mean_return, "normalized_score": normalized_score, "time": time.time()})
 
-    def _read_metrics(self) -> list[dict]:
-        if not self.metrics_path.exists():
+    @staticmethod
+    def read_metrics(path: Path) -> list[dict]:
+        if not path.exists():
             return []
-        return [json.loads(line) for line in self.metrics_path.read_text().splitlines() if line.strip()]
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
     @staticmethod
     def read_evaluations(path: Path) -> list[dict]:

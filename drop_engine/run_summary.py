@@ -2,13 +2,12 @@
 the table bench/QUALITY.md reads to tell a learning run from one that collapses or exploits its model."""
 from __future__ import annotations
 
-import json
 import math
 from collections import defaultdict
 from pathlib import Path
 from typing import Iterable
 
-from .run_log import NotARun, run_config
+from .run_log import NotARun, RunLog, run_config
 
 # tau on the data should stay near 1; Q on model rows running away from Q on data rows, or model rewards above the
 # data's, is model exploitation; the penalty's share says how much of the reward DROP's or MOPO's penalty takes.
@@ -46,8 +45,7 @@ def diagnostics_markdown(run_dir: str | Path, every: int = 10, keys: Iterable[st
     path = run_dir / "metrics.jsonl"
     if not path.is_file():
         raise NotARun(f"{run_dir}: no metrics.jsonl")
-    lines = (json.loads(text) for text in path.read_text().splitlines() if text.strip())
-    labels, table = by_epochs(lines, int(run_config(run_dir)["steps_per_epoch"]), every, keys)
+    labels, table = by_epochs(RunLog.read_metrics(path), int(run_config(run_dir)["steps_per_epoch"]), every, keys)
     out = [f"| metric (mean by epochs) | {' | '.join(labels)} |", "|---" * (len(labels) + 1) + "|"]
     out += [f"| {key} | {' | '.join('-' if v is None else f'{v:.3g}' for v in values)} |"
             for key, values in table.items() if any(v is not None for v in values)]

@@ -16,7 +16,6 @@ peak mid-run, so the actor of the best evaluation is kept too (in the checkpoint
 from __future__ import annotations
 
 import copy
-import random
 import time
 from collections import defaultdict
 from dataclasses import asdict, dataclass, field
@@ -44,6 +43,7 @@ from .replay_buffer import ReplayBuffer
 from .rollout import model_rollout
 from .sac import SAC, Actor
 from .scores import Which, summarize
+from .seeding import load_rng_state, rng_state, seed_everything
 from .stopping import Stopped, check
 
 ONCE = ("dynamics", "behaviour_fit")  # timed phases before the first epoch, not per epoch
@@ -81,12 +81,6 @@ class BestActor:
 
 def _cpu_copy(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: v.detach().to("cpu", copy=True) for k, v in state.items()}
-
-
-def seed_everything(seed: int) -> np.random.Generator:
-    random.seed(seed)
-    torch.manual_seed(seed)
-    return np.random.default_rng(seed)
 
 
 class Trainer:
@@ -142,19 +136,6 @@ class Trainer:
         self.timings: dict[str, float] = defaultdict(float)
 
     # ---------------------------------------------------------------- state
-    def _rng_state(self) -> dict:
-        rng = {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state, "python": random.getstate()}
-        if self.device.type == "cuda":
-            rng["cuda"] = torch.cuda.get_rng_state(self.device)
-        return rng
-
-    def _load_rng_state(self, rng: dict) -> None:
-        torch.set_rng_state(rng["torch"])
-        self.rng.bit_generator.state = rng["numpy"]
-        random.setstate(rng["python"])
-        if "cuda" in rng and self.device.type == "cuda":
-            torch.cuda.set_rng_state(rng["cuda"], self.device)
-
     def state_dict(self) -> dict:
         return {
             "format": CHECKPOINT_FORMAT,
@@ -171,7 +152,7 @@ class Trainer:
             "evaluations": self.evaluations,
             "best": asdict(self.best) if self.best else None,
             "metric_sums": self.metric_sums, "metric_count": self.metric_count,
-            "rng": self._rng_state(),
+            "rng": rng_state(self.rng, self.device),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -193,7 +174,7 @@ class Trainer:
         best = state.get("best")
         self.best = BestActor(best["epoch"], best["score"], _cpu_copy(best["state"])) if best else None
         self.metric_sums, self.metric_count = dict(state["metric_sums"]), state["metric_count"]
-        self._load_rng_state(state["rng"])
+        load_rng_state(self.rng, state["rng"], self.device)
 
     def checkpoint(self) -> Path:
         path = save_checkpoint(self.state_dict(), self.ckpt_dir, self.epoch, self.step_in_epoch,
@@ -362,7 +343,7 @@ class Trainer:
         complete), so the state is the epoch boundary's again and a resumed run does them exactly as this one would
         have."""
         cfg = self.cfg
-        rng = self._rng_state()
+        rng = rng_state(self.rng, self.device)
         dice = copy.deepcopy((self.dice.state_dict(), self.dice.optim_state())) if self.dice is not None else None
         stats: dict[str, torch.Tensor] = {}
         try:
@@ -374,7 +355,7 @@ class Trainer:
                                      cfg.horizon, cfg.algorithm, cfg.penalty, self.termination, self.model_buffer,
                                      self.cb.should_stop))
         except Stopped:
-            self._load_rng_state(rng)
+            load_rng_state(self.rng, rng, self.device)
             if dice is not None:
                 self.dice.load_state_dict(dice[0])
                 self.dice.load_optim_state(dice[1])
