@@ -24,6 +24,7 @@ import torch
 
 from drop_engine.evaluation import evaluate
 from drop_engine.export import load_policy
+from drop_engine.policy_files import FILE_NAMES
 from drop_engine.scores import FINAL_WINDOW, summarize
 
 BAR = 0.8
@@ -44,9 +45,9 @@ def number(value: float | None, spec: str) -> str:
 
 def measure(run_dir: Path, which: str, repeats: int, evaluations: int, draws: int) -> dict:
     exported = run_dir / "policy" / which
-    summary = json.loads((exported / "metadata.json").read_text())  # the run's scores as of its last export
+    summary = json.loads((exported / FILE_NAMES["metadata"]).read_text())  # the run's scores as of its last export
     env = summary["env"]
-    policy = load_policy(exported / "policy.pt")
+    policy = load_policy(exported / FILE_NAMES["torchscript"])
     # Seeds far from any a run uses (10,000 x (seed + 1) + epoch), so no episode repeats one of the run's own.
     scores = np.array([evaluate(policy, env, episodes=10, seed=1_000_000 + 100 * k).normalized_score
                        for k in range(repeats)])

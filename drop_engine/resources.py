@@ -126,7 +126,7 @@ def estimate(cfg: TrainConfig, shape: DataShape) -> ResourceEstimate:
     """The resources `cfg` takes on a dataset of this shape."""
     params = parameter_counts(cfg, shape)
     # the dynamics keep each member's best snapshot, SAC a target critic; tau's average, where on, is counted as
-    # trained (an upper bound by three copies of one small network)
+    # trained though it has no gradient or Adam moments (over by three copies of the elites' tau networks)
     parameter_floats = ((TRAINED + 1) * (params["dynamics"] + params["critic"])
                         + TRAINED * (params["actor"] + params["dice"]))
     data_floats = 2 * shape.rows * shape.row_floats
