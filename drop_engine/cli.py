@@ -212,7 +212,8 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
 @click.option("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, medium, "
               "expert; medium-expert holds twice this; default 200,000)")
 @click.option("--kinds", default=None,
-              help="comma-separated subset of random,medium,medium-replay,expert,medium-expert (default all)")
+              help="comma-separated subset of random,medium,medium-replay,expert,medium-expert (default all); "
+                   "random alone needs no online training")
 @click.option("--warmup", type=int, default=5000, show_default=True,
               help="uniform-random steps before SAC updates start")
 @click.option("--eval-every", type=int, default=5000, show_default=True,

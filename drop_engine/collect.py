@@ -225,7 +225,9 @@ def collect_datasets(cfg: CollectConfig, out_dir: str | Path, kinds: tuple[str, 
     out.mkdir(parents=True, exist_ok=True)
     agent = OnlineSAC(cfg.online, out / f"{cfg.online.env}-sac")
     try:
-        if not agent.done:
+        if set(kinds) <= {"random"}:  # the untrained actor: no need to wait for online training
+            agent.begin()
+        elif not agent.done:
             bar = _Bar(f"{cfg.online.env} sac", cfg.online.steps, progress)
             bar.update_to(agent.step)
 

@@ -308,6 +308,12 @@ class OnlineSAC:
             self.last_episode_return, self.episode_return = self.episode_return, 0.0
             phys.reset(seed=self.cfg.seed + self.episodes)
 
+    def begin(self) -> None:
+        """Evaluate and keep the randomly initialised policy, the `random` behaviour policy, before any step."""
+        if not self.snapshots:
+            self._snapshot()
+            self.save()
+
     def run(self, progress: Callable[[OnlineSAC], None] | None = None,
             should_stop: Callable[[], bool] | None = None) -> bool:
         """Train to `cfg.steps`; True when finished, False when `should_stop` asked (a checkpoint is written either
@@ -317,9 +323,7 @@ class OnlineSAC:
         """
         cfg = self.cfg
         self._clock = time.perf_counter()
-        if not self.snapshots:  # the randomly initialised policy is the `random` behaviour policy
-            self._snapshot()
-            self.save()
+        self.begin()
         while self.step < cfg.steps:
             if should_stop is not None and should_stop():
                 self.save()

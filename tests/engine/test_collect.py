@@ -57,6 +57,16 @@ def test_every_kind_passes_upload_validation_and_round_trips(collected):
     assert rows["medium-expert"]["transitions"] == 4000
 
 
+def test_random_alone_skips_online_training_and_makes_the_same_file(collected, tmp_path):
+    out, cfg, _ = collected
+    [row] = collect_datasets(cfg, tmp_path, kinds=("random",), progress=False)
+    assert row["kind"] == "random" and OnlineSAC(cfg.online, tmp_path / "hopper-sac").step == 0
+    alone, full = read_arrays(tmp_path / "hopper-random.hdf5"), read_arrays(out / "hopper-random.hdf5")
+    for key in alone[0]:
+        np.testing.assert_array_equal(alone[0][key], full[0][key])
+    assert alone[1]["policy_steps"].tolist() == full[1]["policy_steps"].tolist() == [0]
+
+
 def test_kinds_are_what_they_say(collected):
     out, cfg, rows = collected
     attrs = {k: read_arrays(out / f"hopper-{k}.hdf5")[1] for k in KINDS}
