@@ -104,8 +104,12 @@ async def _multipart(request: Request, boundary: bytes, sink: _Sink) -> str:
         "on_header_field": on_header_field, "on_header_value": on_header_value, "on_header_end": on_header_end,
         "on_headers_finished": on_headers_finished, "on_part_data": on_part_data, "on_part_end": on_part_end,
     })
+    received, most = 0, sink.limit + MULTIPART_SLACK  # every part counts: a dropped one still costs time and headers
     try:
         async for chunk in request.stream():
+            received += len(chunk)
+            if received > most:
+                raise sink.too_large()
             parser.write(chunk)
         parser.finalize()
     except (Problem, OSError):  # ours, and the disk's (full, read-only): not the body's fault

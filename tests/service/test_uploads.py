@@ -63,6 +63,28 @@ def test_over_the_size_limit(alice, clean, settings):
     assert_problem(alice.post("/v1/datasets", content=chunks()), 413)
 
 
+@pytest.mark.parametrize("part", ["data", "header"])
+def test_parts_besides_the_file_count_toward_the_limit(alice, clean, settings, part):
+    """Other parts are read and dropped, and a part's headers are held until they end: without the limit a stream of
+    either, with no Content-Length, would hold the request and the header's memory without bound."""
+    boundary = "drop-rl-test-boundary"
+    filler = (b"\0" if part == "data" else b"a") * 65536
+
+    def body():
+        yield f'--{boundary}\r\nContent-Disposition: form-data; name="padding"\r\n'.encode()
+        if part == "header":
+            yield b"X-Padding: "
+        else:
+            yield b"\r\n"
+        for _ in range(settings.max_upload_bytes // len(filler) + 2):
+            yield filler
+        yield f"\r\n--{boundary}--\r\n".encode()
+
+    headers = {"Content-Type": f"multipart/form-data; boundary={boundary}"}
+    r = alice.post("/v1/datasets", content=body(), headers=headers)
+    assert_problem(r, 413, "DROP_MAX_UPLOAD_BYTES")
+
+
 def test_raw_body_upload_and_name(alice, hopper_file):
     r = alice.post("/v1/datasets", params={"name": "mine.hdf5"}, content=hopper_file.read_bytes(),
                    headers={"Content-Type": "application/x-hdf5"})
