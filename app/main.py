@@ -99,6 +99,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
                 with suppress(asyncio.CancelledError):
                     await listener
             await fast_reads.close()
+            app.state.validator.close()
         finally:
             engine.dispose()  # the pool's connections now, not when the app is collected
             flush_access()

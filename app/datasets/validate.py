@@ -143,8 +143,15 @@ class Validator:
     arrival order (a queued one whose request is cancelled never starts)."""
 
     def __init__(self, settings: Settings):
-        self.limits = Limits.of(settings)
-        self._pool = ThreadPoolExecutor(settings.max_concurrent_validations, thread_name_prefix="validate")
+        self.limits, self.concurrency = Limits.of(settings), settings.max_concurrent_validations
+        self._pool: ThreadPoolExecutor | None = None
+
+    def close(self) -> None:
+        """At the app's shutdown: queued validations are cancelled and the idle threads end (a later lifespan of the
+        same app starts a new pool)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
 
     async def validate(self, src: Path, dest_dir: Path, timer: ContextManager = nullcontext()) -> dict:
         """{"format", "file", "report"} of the file at `src`, converted into `dest_dir`, or Invalid with the message
@@ -153,6 +160,8 @@ class Validator:
             with timer:
                 return _run(src, dest_dir, self.limits)
 
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix="validate")
         result = await asyncio.get_running_loop().run_in_executor(self._pool, timed)
         if result.get("errno"):
             raise OSError(result["errno"], os.strerror(result["errno"]))

@@ -98,6 +98,10 @@ def test_validations_beyond_the_pool_wait_their_turn(settings, monkeypatch):
         assert peak == 1
         for r in responses:
             assert client.delete(f"/v1/datasets/{r.json()['id']}").status_code == 204
+        threads = list(app_.state.validator._pool._threads)
+    for thread in threads:  # the app's shutdown ends its validation threads
+        thread.join(5)
+    assert threads and not any(t.is_alive() for t in threads)
 
 
 def test_a_recorded_env_that_contradicts_the_dims_is_a_warning(settings, tmp_path):
