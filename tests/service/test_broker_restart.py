@@ -66,7 +66,7 @@ def test_jobs_survive_a_redis_restart(own_settings, own_redis, hopper_file, tmp_
             spec = {"dataset_id": ds["id"], "preset": "smoke"}
             running = alice.post("/v1/jobs", json={**spec, "overrides": {"epochs": 10}}).json()
             queued = alice.post("/v1/jobs", json={**spec, "seed": 1}).json()
-            deadline = time.monotonic() + 60
+            deadline = time.monotonic() + 120  # imports, dynamics and DICE in a niced pool on a loaded machine
             while True:
                 job = alice.get(f"/v1/jobs/{running['id']}").json()
                 if job["status"] == "running" and (job["progress"] or {}).get("phase") == "train":

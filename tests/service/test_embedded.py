@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from app.serving.embedded import WORKER_STOP_S
+
 from .processes import Serve, past_first_epoch
 
 
@@ -64,7 +66,9 @@ def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file, sig):
     finally:
         drop.close()
         assert serve.stop(sig) == (-sig if sig == signal.SIGKILL else 0), serve.log_path.read_text()[-3000:]
-    _assert_ended(tree)
+    # Killed, `drop serve` cannot stop its worker: the worker's own warm shutdown (the niced pool's final checkpoint)
+    # ends the tree, which on a loaded machine takes as long as `drop serve` gives it otherwise.
+    _assert_ended(tree, WORKER_STOP_S + 30 if sig == signal.SIGKILL else 10)
     with sqlite3.connect(tmp_path / "data" / "drop.db") as db:
         assert db.execute("SELECT status FROM jobs WHERE id = ?", (job["id"],)).fetchone() == ("queued",)
         rows = db.execute("SELECT path FROM job_checkpoints WHERE job_id = ?", (job["id"],))

@@ -84,7 +84,7 @@ def _parts(data_dir: Path) -> list[Path]:
 
 
 def _wait_for_parts(data_dir: Path, count: int) -> None:
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 30
     while len(_parts(data_dir)) < count:
         assert time.monotonic() < deadline, _parts(data_dir)
         time.sleep(0.02)
@@ -113,11 +113,12 @@ def test_a_stalled_body_is_dropped_after_the_idle_timeout(stalling_api, tokens, 
     sock = _open(port, "POST", path, {"Authorization": f"Bearer {tokens['a']}", **headers}, body)
     if path == "/v1/datasets":
         _wait_for_parts(data_dir, 1)  # the upload is being written
-    answer = _until_closed(sock, 10 * IDLE_S)
+    answer = _until_closed(sock, 20 * IDLE_S)
     waited = time.monotonic() - began
     assert answer.startswith(b"HTTP/1.1 408 "), answer
     assert b'"code":"body_timeout"' in answer and b"DROP_BODY_IDLE_TIMEOUT_S" in answer
-    assert IDLE_S <= waited < 5 * IDLE_S, waited
+    # Slack for a loaded machine, still far below the default timeout (30 s): the setting is what ended it.
+    assert IDLE_S <= waited < 10 * IDLE_S, waited
     assert not _parts(data_dir)
 
 
@@ -142,7 +143,7 @@ def test_uploads_in_progress_are_bounded_per_owner_and_in_all(settings, tmp_path
                 assert setting in r.json()["detail"] and r.headers["retry-after"].isdigit()
             for sock in held:
                 sock.close()
-            deadline = time.monotonic() + 10
+            deadline = time.monotonic() + 30
             while _parts(data_dir):  # each disconnected upload removes its file and gives its slot back
                 assert time.monotonic() < deadline, _parts(data_dir)
                 time.sleep(0.05)
@@ -160,7 +161,11 @@ def test_running_out_of_file_descriptors_logs_one_line_per_interval(settings, tm
         try:
             for _ in range(300):
                 sockets.append(socket.create_connection(("127.0.0.1", port), timeout=5))
-            time.sleep(3)  # asyncio retries the accept every second meanwhile
+            deadline = time.monotonic() + 30  # the first refused accept, however slowly a loaded machine gets there
+            while ACCEPT_ERROR not in log.read_text(errors="replace"):
+                assert time.monotonic() < deadline, log.read_text(errors="replace")[-4000:]
+                time.sleep(0.1)
+            time.sleep(3)  # asyncio retries the accept every second meanwhile: each one within the interval is dropped
             assert 1 <= log.read_text(errors="replace").count(ACCEPT_ERROR) <= 2
         finally:
             for sock in sockets:
