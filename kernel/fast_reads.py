@@ -1,12 +1,14 @@
 """Single-statement reads for the API's hot endpoints (a job, the job list, a job's events, a dataset, a token),
 awaited on the event loop.
 
-A read through a pooled ORM session in the threadpool cost about 520 µs of the API's time on PostgreSQL, the same
-query through psycopg's async pool 180 µs, each timed in a loop (bench/NOTES.md). So on PostgreSQL each statement is
-compiled once to SQL and runs on the event loop through `psycopg_pool`: no thread hop, no ORM, no pre-ping round
-trip. On SQLite (`drop serve`) the same statement runs through SQLAlchemy in the threadpool. Rows come back with
-attribute access either way (psycopg's namedtuple rows, SQLAlchemy's `Row`), so serialisers read them as they read ORM
-objects.
+On PostgreSQL each statement is compiled once to SQL and runs on the event loop through an asyncpg pool: no thread
+hop, no ORM, no pre-ping round trip. Timed in a loop on a job read (bench/NOTES.md): an ORM session in the threadpool
+cost the API about 520 µs, psycopg's async pool 227, asyncpg's pool 305 with its default reset on release and 140
+without it. The reset (UNLISTEN, RESET ALL, unlock advisory locks, CLOSE ALL) is a round trip per read that undoes
+session state these connections never make: they run single autocommit SELECTs and nothing else, so it is off.
+
+On SQLite (`drop serve`) the same statements run through SQLAlchemy in the threadpool. Rows come back with attribute
+access either way (SQLAlchemy's `Row`, `Row` below), so serialisers read them as they read ORM objects.
 
 Statements are built once, at import, with named `bindparam`s, and passed with their values: compiling is cached by
 the statement object, so a statement built per request would be compiled per request.
@@ -23,14 +25,38 @@ from sqlalchemy.sql import Executable
 
 log = logging.getLogger("drop.api")
 POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (500) rather than queueing without end
+BATCH_MAX = 100  # keys in one batched read
 
 
-async def _parse_json_fast(conn) -> None:
-    """json and jsonb columns (a job's config and metrics) parsed by pydantic-core: 7 µs for a config that took the
-    standard library's parser 17."""
-    from psycopg.types.json import set_json_loads
+class _Batch:
+    def __init__(self, loop: asyncio.AbstractEventLoop):
+        self.loop, self.keys, self.rows = loop, set(), loop.create_future()
 
-    set_json_loads(pydantic_core.from_json, conn)
+
+def _row_class():
+    import asyncpg
+
+    class Row(asyncpg.Record):
+        """A record whose columns read as attributes, as SQLAlchemy's rows do."""
+
+        def __getattr__(self, name: str) -> Any:
+            try:
+                return self[name]
+            except KeyError:
+                raise AttributeError(name) from None
+
+    return Row
+
+
+async def _setup(conn) -> None:
+    """json and jsonb columns (a job's config and metrics) parsed by pydantic-core, as dicts and lists."""
+    for name in ("json", "jsonb"):
+        await conn.set_type_codec(name, schema="pg_catalog", decoder=pydantic_core.from_json,
+                                  encoder=lambda value: pydantic_core.to_json(value).decode())
+
+
+async def _keep_session(conn) -> None:
+    """No reset on release: the pool's connections never change their session (see the module's docstring)."""
 
 
 class FastReads:
@@ -39,11 +65,11 @@ class FastReads:
     def __init__(self, engine: Engine, size: int):
         self.engine = engine.execution_options(isolation_level="AUTOCOMMIT")  # SQLite: one statement, no BEGIN
         self.size = size
-        self._compiled: dict[int, tuple[Executable, str]] = {}  # id -> (the statement, kept alive; its SQL)
+        self._compiled: dict[int, tuple[Executable, str, tuple[str, ...]]] = {}  # id -> (statement, SQL, names)
         self._pool = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lost: tuple[type[Exception], ...] = ()
-        self._pool_errors: tuple[type[Exception], ...] = ()
+        self._batches: dict[int, _Batch] = {}  # id(statement) -> the batch still taking keys
 
     @property
     def on_postgresql(self) -> bool:
@@ -55,17 +81,17 @@ class FastReads:
         any other loop take the threadpool path."""
         if not self.on_postgresql or self._pool is not None:
             return
-        from psycopg import OperationalError
-        from psycopg.rows import namedtuple_row
-        from psycopg_pool import AsyncConnectionPool, PoolClosed, PoolTimeout, TooManyRequests
+        import asyncpg
+        from sqlalchemy.dialects.postgresql.asyncpg import PGDialect_asyncpg
 
-        self._lost, self._pool_errors = (OperationalError,), (PoolClosed, PoolTimeout, TooManyRequests)
+        self._dialect = PGDialect_asyncpg(paramstyle="numeric_dollar")
+        # What a server restart or a terminated backend raises on a pooled connection's next use.
+        self._lost = (asyncpg.ConnectionDoesNotExistError, asyncpg.PostgresConnectionError,
+                      asyncpg.exceptions.OperatorInterventionError, asyncpg.InterfaceError, OSError)
         self._loop = asyncio.get_running_loop()
-        conninfo = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
-        self._pool = AsyncConnectionPool(conninfo, min_size=1, max_size=self.size, open=False, timeout=POOL_WAIT_S,
-                                         kwargs={"autocommit": True, "row_factory": namedtuple_row},
-                                         configure=_parse_json_fast)
-        await self._pool.open()
+        dsn = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
+        self._pool = await asyncpg.create_pool(dsn, min_size=1, max_size=self.size, init=_setup,
+                                               reset=_keep_session, record_class=_row_class())
 
     async def close(self) -> None:
         if self._pool is not None and asyncio.get_running_loop() is self._loop:
@@ -76,35 +102,62 @@ class FastReads:
         """Every row of `stmt` with its bind parameters `params`."""
         if self._pool is None or asyncio.get_running_loop() is not self._loop:
             return await asyncio.to_thread(self._sync, stmt, params)
-        sql = self._sql(stmt)
+        sql, names = self._sql(stmt)
+        args = [params[name] for name in names]
         try:
-            return await self._fetch(sql, params)
-        except self._lost as exc:  # the server closed connections (a restart): drop the dead ones, ask again
-            if isinstance(exc, self._pool_errors):  # a full or closed pool is not a lost connection
-                raise
+            return await self._fetch(sql, args)
+        except self._lost as exc:  # the server closed connections (a restart): replace them all, ask again
             log.warning("read retried after a lost database connection: %s", exc)
-            await self._pool.check()
-            return await self._fetch(sql, params)
+            await self._pool.expire_connections()
+            return await self._fetch(sql, args)
 
-    async def _fetch(self, sql: str, params: dict[str, Any]) -> list[Any]:
-        async with self._pool.connection() as conn:
-            return await (await conn.execute(sql, params)).fetchall()
+    async def _fetch(self, sql: str, args: list[Any]) -> list[Any]:
+        async with self._pool.acquire(timeout=POOL_WAIT_S) as conn:
+            return await conn.fetch(sql, *args)
 
     async def one(self, stmt: Executable, **params: Any) -> Any | None:
         """The first row of `stmt`, or None."""
         rows = await self.all(stmt, **params)
         return rows[0] if rows else None
 
-    def _sql(self, stmt: Executable) -> str:
+    async def keyed(self, stmt: Executable, column: str, key: Any) -> Any | None:
+        """The row of `stmt` whose `column` is `key`, or None; `stmt` takes the bindparam `keys`, a list.
+
+        Every keyed read of `stmt` that starts in one turn of the event loop joins one batch, and the batch is sent on
+        the next turn as one statement: under load one round trip serves many requests. A read joins only a batch
+        not yet sent, so it still sees every write committed before it began."""
+        loop = asyncio.get_running_loop()
+        batch = self._batches.get(id(stmt))
+        if batch is None or batch.loop is not loop or len(batch.keys) >= BATCH_MAX:
+            batch = self._batches[id(stmt)] = _Batch(loop)
+            loop.call_soon(self._send, stmt, column, batch)
+        batch.keys.add(key)
+        return (await asyncio.shield(batch.rows)).get(key)
+
+    def _send(self, stmt: Executable, column: str, batch: _Batch) -> None:
+        if self._batches.get(id(stmt)) is batch:
+            del self._batches[id(stmt)]
+
+        def landed(read: asyncio.Task) -> None:
+            if read.cancelled():
+                batch.rows.cancel()
+            elif read.exception() is not None:
+                batch.rows.set_exception(read.exception())
+            else:
+                batch.rows.set_result({getattr(row, column): row for row in read.result()})
+
+        asyncio.ensure_future(self.all(stmt, keys=list(batch.keys))).add_done_callback(landed)
+
+    def _sql(self, stmt: Executable) -> tuple[str, tuple[str, ...]]:
         found = self._compiled.get(id(stmt))
         if found is None:
-            compiled = stmt.compile(dialect=self.engine.dialect)
+            compiled = stmt.compile(dialect=self._dialect)
             # Only named bind parameters, all given per call: a literal or an IN list would need values compiled in.
             if compiled.params.keys() - {b.key for b in compiled.binds.values() if b.value is None} or \
                     "POSTCOMPILE" in str(compiled):
                 raise ValueError(f"a fast read takes named bindparams only: {compiled}")
-            found = self._compiled[id(stmt)] = (stmt, str(compiled))
-        return found[1]
+            found = self._compiled[id(stmt)] = (stmt, str(compiled), tuple(compiled.positiontup))
+        return found[1], found[2]
 
     def _sync(self, stmt: Executable, params: dict[str, Any]) -> Sequence[Any]:
         with self.engine.connect() as conn:

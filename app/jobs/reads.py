@@ -1,7 +1,8 @@
 """What the job routes read: a job by its owner (404 otherwise), the job list, a job's events and its outputs.
 
 The hot reads (a job, the job list, a job's events) are statements built once and awaited through the API's
-`FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM. Their
+`FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM, and the
+job reads that start together are one statement (`FastReads.keyed`). Their
 answers are sent as the dicts the serializers make, which already have the documented shapes: validating them again
 against the response model would only spend the time twice. The other reads take the request's ORM session.
 """
@@ -9,7 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sqlalchemy import bindparam, select
+from sqlalchemy import String, any_, bindparam, select
+from sqlalchemy.dialects.postgresql import ARRAY
 from sqlalchemy.orm import Session, defer
 
 from drop_engine.policy_files import FILE_NAMES, PolicyFormat
@@ -31,7 +33,9 @@ POLICY_FILES = {fmt: (name, "application/json" if fmt == "metadata" else "applic
 # The API never shows a job's `result` (the engine's full report), so it is not read.
 _JOB_COLUMNS = [c for c in Job.__table__.c if c.name != "result"]
 _OWNED = (Job.id == bindparam("job_id"), Job.owner_id == bindparam("owner"))
-JOB = select(*_JOB_COLUMNS).where(*_OWNED)
+# Jobs by id, for batched reads (FastReads.keyed): an array on PostgreSQL, an expanding IN on SQLite.
+JOBS_BY_ID = {True: select(*_JOB_COLUMNS).where(Job.id == any_(bindparam("keys", type_=ARRAY(String)))),
+              False: select(*_JOB_COLUMNS).where(Job.id.in_(bindparam("keys", expanding=True)))}
 JOB_EXISTS = select(Job.id).where(*_OWNED)
 JOB_STATUS = select(Job.status).where(Job.id == bindparam("job_id"))
 EVENTS = (select(JobEvent.__table__).where(JobEvent.job_id == bindparam("job_id"), JobEvent.id > bindparam("after"))
@@ -76,8 +80,8 @@ async def check_owned(reads: FastReads, owner: str, job_id: str) -> None:
 
 
 async def job(reads: FastReads, owner: str, job_id: str) -> dict:
-    row = await reads.one(JOB, job_id=job_id, owner=owner) if is_id(job_id, "job") else None
-    if row is None:
+    row = await reads.keyed(JOBS_BY_ID[reads.on_postgresql], "id", job_id) if is_id(job_id, "job") else None
+    if row is None or row.owner_id != owner:
         raise _not_found(job_id)
     return schemas.job(row)
 

@@ -66,6 +66,73 @@ def test_job_matches_the_orm_read(db):
     assert got["started_at"] == "2026-01-02T03:04:05.678000Z" and got["error"] == {"code": "x", "message": "boom"}
 
 
+def test_concurrent_job_reads_share_one_statement(db):
+    """Job reads started in one turn of the loop are one statement; each gets its own job, a foreign owner a 404."""
+    engine, sessions, ids = db
+    with sessions() as s:
+        expected = {job_id: schemas.job(s.get(Job, job_id)) for job_id in ids}
+
+    async def body(fast):
+        sent = []
+        real = fast.all
+
+        async def counted(stmt, **params):
+            sent.append(sorted(params["keys"]))
+            return await real(stmt, **params)
+        fast.all = counted
+        reads_ = [reads.job(fast, OWNER, j) for j in (*ids, ids[0])] + [reads.job(fast, "someone_else", ids[1])]
+        return sent, await asyncio.gather(*reads_, return_exceptions=True)
+
+    sent, got = asyncio.run(run(body)(engine))
+    assert sent == [sorted(ids)]
+    assert got[:4] == [expected[j] for j in (*ids, ids[0])]
+    assert isinstance(got[4], Problem) and got[4].status == 404
+
+
+def test_a_read_after_a_sent_batch_sees_a_later_write(db):
+    """A read never joins a batch already sent: a write committed before the read began is in its answer."""
+    engine, sessions, ids = db
+
+    async def body(fast):
+        queried, release = asyncio.Event(), asyncio.Event()
+        real = fast.all
+
+        async def held(stmt, **params):  # the first batch has read its rows but not yet answered
+            rows = await real(stmt, **params)
+            if not queried.is_set():
+                queried.set()
+                await release.wait()
+            return rows
+        fast.all = held
+        early = asyncio.ensure_future(reads.job(fast, OWNER, ids[0]))
+        await queried.wait()
+        with sessions.begin() as s:
+            s.get(Job, ids[0]).attempts = 7
+        late = asyncio.ensure_future(reads.job(fast, OWNER, ids[0]))
+        await asyncio.sleep(0)
+        release.set()
+        return await early, await late
+
+    try:
+        early, late = asyncio.run(run(body)(engine))
+        assert (early["attempts"], late["attempts"]) == (0, 7)
+    finally:
+        with sessions.begin() as s:
+            s.get(Job, ids[0]).attempts = 0
+
+
+def test_a_failed_batch_fails_every_read_in_it(db):
+    engine, _, ids = db
+
+    async def body(fast):
+        async def broken(stmt, **params):
+            raise RuntimeError("database gone")
+        fast.all = broken
+        return await asyncio.gather(*(reads.job(fast, OWNER, j) for j in ids), return_exceptions=True)
+
+    assert [str(e) for e in asyncio.run(run(body)(engine))] == ["database gone"] * 3
+
+
 @pytest.mark.parametrize("status", [None, JobStatus.RUNNING])
 @pytest.mark.parametrize("after", [False, True])
 def test_every_job_list_variant(db, status, after):
@@ -121,15 +188,17 @@ def test_a_read_survives_the_server_dropping_its_connections(db):
         pytest.skip("a PostgreSQL connection pool")
 
     async def body(fast):
+        # two reads at once open both of the pool's connections, so the retry cannot land on a live one by chance
+        await asyncio.gather(*(fast.all(reads.JOB_EXISTS, job_id=ids[0], owner=OWNER) for _ in range(2)))
         first = await reads.job(fast, OWNER, ids[0])
         with psycopg.connect(PG_ADMIN, autocommit=True) as admin:  # what a server restart does to the pool
             killed = admin.execute("SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
                                    "WHERE datname = %s AND pid <> pg_backend_pid()", (engine.url.database,)).fetchone()
-        assert killed[0] >= 1
-        return first, await reads.job(fast, OWNER, ids[0])
+        assert killed[0] >= 2
+        return first, [await reads.job(fast, OWNER, ids[0]) for _ in range(2)]
 
     first, again = asyncio.run(run(body)(engine))
-    assert again == first
+    assert again == [first, first]
 
 
 def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
@@ -153,7 +222,7 @@ def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
         asyncio.run(second_lifespan())
         assert fast._pool is pool
         other.run_until_complete(fast.close())
-        assert fast._pool is None and (pool is None or pool.closed)
+        assert fast._pool is None and (pool is None or pool.is_closing())
     finally:
         other.close()
 
