@@ -30,7 +30,8 @@ BATCH_MAX = 100  # keys in one batched read
 
 class _Batch:
     def __init__(self, loop: asyncio.AbstractEventLoop):
-        self.loop, self.keys, self.rows = loop, set(), loop.create_future()
+        self.loop, self.keys = loop, set()
+        self.rows: asyncio.Task | None = None  # the read of them all, which starts on the loop's next turn
 
 
 def _row_class():
@@ -70,6 +71,7 @@ class FastReads:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lost: tuple[type[Exception], ...] = ()
         self._batches: dict[int, _Batch] = {}  # id(statement) -> the batch still taking keys
+        self._reading: dict[int, int] = {}  # id(statement) -> its keyed reads in flight
 
     @property
     def on_postgresql(self) -> bool:
@@ -90,7 +92,10 @@ class FastReads:
                       asyncpg.exceptions.OperatorInterventionError, asyncpg.InterfaceError, OSError)
         self._loop = asyncio.get_running_loop()
         dsn = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
-        self._pool = await asyncpg.create_pool(dsn, min_size=1, max_size=self.size, init=_setup,
+        # Every connection opened now: a pool that grows on demand makes the read that finds all connections busy
+        # wait for a new one's connect and set-up, tens of milliseconds on a loaded machine (the p99 of
+        # bench/service_load.py's fixed load went from about 40 to 60-120 ms with min_size=1).
+        self._pool = await asyncpg.create_pool(dsn, min_size=self.size, max_size=self.size, init=_setup,
                                                reset=_keep_session, record_class=_row_class())
 
     async def close(self) -> None:
@@ -123,30 +128,32 @@ class FastReads:
     async def keyed(self, stmt: Executable, column: str, key: Any) -> Any | None:
         """The row of `stmt` whose `column` is `key`, or None; `stmt` takes the bindparam `keys`, a list.
 
-        Every keyed read of `stmt` that starts in one turn of the event loop joins one batch, and the batch is sent on
-        the next turn as one statement: under load one round trip serves many requests. A read joins only a batch
-        not yet sent, so it still sees every write committed before it began."""
-        loop = asyncio.get_running_loop()
-        batch = self._batches.get(id(stmt))
+        With no read of `stmt` in flight this one is sent at once. Otherwise it joins the batch of every keyed read
+        of `stmt` that starts meanwhile, sent as one statement on the loop's next turn: under load one round trip
+        serves many requests, and a quiet server adds no wait. A read joins only a batch not yet sent, so it still
+        sees every write committed before it began."""
+        loop, sid = asyncio.get_running_loop(), id(stmt)
+        batch = self._batches.get(sid)
         if batch is None or batch.loop is not loop or len(batch.keys) >= BATCH_MAX:
-            batch = self._batches[id(stmt)] = _Batch(loop)
-            loop.call_soon(self._send, stmt, column, batch)
+            if not self._reading.get(sid):
+                return (await self._read(stmt, column, [key])).get(key)
+            batch = self._batches[sid] = _Batch(loop)
+            batch.rows = loop.create_task(self._send(stmt, column, batch))
         batch.keys.add(key)
         return (await asyncio.shield(batch.rows)).get(key)
 
-    def _send(self, stmt: Executable, column: str, batch: _Batch) -> None:
+    async def _send(self, stmt: Executable, column: str, batch: _Batch) -> dict[Any, Any]:
         if self._batches.get(id(stmt)) is batch:
             del self._batches[id(stmt)]
+        return await self._read(stmt, column, list(batch.keys))
 
-        def landed(read: asyncio.Task) -> None:
-            if read.cancelled():
-                batch.rows.cancel()
-            elif read.exception() is not None:
-                batch.rows.set_exception(read.exception())
-            else:
-                batch.rows.set_result({getattr(row, column): row for row in read.result()})
-
-        asyncio.ensure_future(self.all(stmt, keys=list(batch.keys))).add_done_callback(landed)
+    async def _read(self, stmt: Executable, column: str, keys: list[Any]) -> dict[Any, Any]:
+        sid = id(stmt)
+        self._reading[sid] = self._reading.get(sid, 0) + 1
+        try:
+            return {getattr(row, column): row for row in await self.all(stmt, keys=keys)}
+        finally:
+            self._reading[sid] -= 1
 
     def _sql(self, stmt: Executable) -> tuple[str, tuple[str, ...]]:
         found = self._compiled.get(id(stmt))
