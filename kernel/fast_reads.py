@@ -1,11 +1,14 @@
 """Single-statement reads for the API's hot endpoints (a job, the job list, a job's events, a dataset, a token),
 awaited on the event loop.
 
-On PostgreSQL each statement is compiled once to SQL and runs on the event loop through an asyncpg pool: no thread
+On PostgreSQL each statement is compiled once to SQL and runs on the event loop over asyncpg connections: no thread
 hop, no ORM, no pre-ping round trip. Timed in a loop on a job read (bench/NOTES.md): an ORM session in the threadpool
-cost the API about 520 µs, psycopg's async pool 227, asyncpg's pool 305 with its default reset on release and 140
-without it. The reset (UNLISTEN, RESET ALL, unlock advisory locks, CLOSE ALL) is a round trip per read that undoes
-session state these connections never make: they run single autocommit SELECTs and nothing else, so it is off.
+cost the API about 520 µs, psycopg's async pool 227, asyncpg's own pool 305 (140 without its reset on release), a
+queue of asyncpg connections 91. asyncpg's pool also runs its acquire with a timeout and its release each in a task
+of their own (asyncio.wait_for on Python 3.11, asyncio.shield): two more turns of the event loop per read, which under
+load doubled the p99 of bench/service_load.py's fixed load. So `_Connections` below is the pool: a LIFO of idle
+connections, all opened at start, with no reset (these connections run single autocommit SELECTs and never change
+their session).
 
 On SQLite (`drop serve`) the same statements run through SQLAlchemy in the threadpool. Rows come back with attribute
 access either way (SQLAlchemy's `Row`, `Row` below), so serialisers read them as they read ORM objects.
@@ -56,8 +59,56 @@ async def _setup(conn) -> None:
                                   encoder=lambda value: pydantic_core.to_json(value).decode())
 
 
-async def _keep_session(conn) -> None:
-    """No reset on release: the pool's connections never change their session (see the module's docstring)."""
+class _Connections:
+    """Slots of asyncpg connections: each holds an open connection or None, a connection to make when next needed
+    (one found closed, or dropped after another was lost). Taking an idle one never leaves the event loop's turn."""
+
+    def __init__(self, dsn: str, size: int):
+        import asyncpg
+
+        self.dsn, self.size, self.closed = dsn, size, False
+        self._connect_fn, self._row = asyncpg.connect, _row_class()
+        self._slots: asyncio.LifoQueue = asyncio.LifoQueue()
+
+    async def open(self) -> None:
+        for conn in await asyncio.gather(*(self._connect() for _ in range(self.size))):
+            self._slots.put_nowait(conn)
+
+    async def _connect(self):
+        conn = await self._connect_fn(self.dsn, record_class=self._row)
+        await _setup(conn)
+        return conn
+
+    async def fetch(self, sql: str, args: list[Any]) -> list[Any]:
+        if self._slots.empty():
+            async with asyncio.timeout(POOL_WAIT_S):
+                conn = await self._slots.get()
+        else:
+            conn = self._slots.get_nowait()
+        try:
+            if conn is None:
+                conn = await self._connect()
+            return await conn.fetch(sql, *args)
+        finally:
+            if self.closed and conn is not None:
+                conn.terminate()
+            else:
+                self._slots.put_nowait(None if conn is None or conn.is_closed() else conn)
+
+    def renew(self) -> None:
+        """Drop every idle connection, to be made again when needed: after one was lost, the server may have dropped
+        them all (a restart)."""
+        idle = [self._slots.get_nowait() for _ in range(self._slots.qsize())]
+        for conn in idle:
+            if conn is not None:
+                conn.terminate()
+            self._slots.put_nowait(None)
+
+    async def close(self) -> None:
+        """Close the idle connections; one still in use is closed when its read ends."""
+        self.closed = True
+        idle = [self._slots.get_nowait() for _ in range(self._slots.qsize())]
+        await asyncio.gather(*(conn.close() for conn in idle if conn is not None))
 
 
 class FastReads:
@@ -93,10 +144,10 @@ class FastReads:
         self._loop = asyncio.get_running_loop()
         dsn = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
         # Every connection opened now: a pool that grows on demand makes the read that finds all connections busy
-        # wait for a new one's connect and set-up, tens of milliseconds on a loaded machine (the p99 of
-        # bench/service_load.py's fixed load went from about 40 to 60-120 ms with min_size=1).
-        self._pool = await asyncpg.create_pool(dsn, min_size=self.size, max_size=self.size, init=_setup,
-                                               reset=_keep_session, record_class=_row_class())
+        # wait for a new one's connect and set-up, tens of milliseconds on a loaded machine.
+        pool = _Connections(dsn, self.size)
+        await pool.open()
+        self._pool = pool
 
     async def close(self) -> None:
         if self._pool is not None and asyncio.get_running_loop() is self._loop:
@@ -110,15 +161,11 @@ class FastReads:
         sql, names = self._sql(stmt)
         args = [params[name] for name in names]
         try:
-            return await self._fetch(sql, args)
+            return await self._pool.fetch(sql, args)
         except self._lost as exc:  # the server closed connections (a restart): replace them all, ask again
             log.warning("read retried after a lost database connection: %s", exc)
-            await self._pool.expire_connections()
-            return await self._fetch(sql, args)
-
-    async def _fetch(self, sql: str, args: list[Any]) -> list[Any]:
-        async with self._pool.acquire(timeout=POOL_WAIT_S) as conn:
-            return await conn.fetch(sql, *args)
+            self._pool.renew()
+            return await self._pool.fetch(sql, args)
 
     async def one(self, stmt: Executable, **params: Any) -> Any | None:
         """The first row of `stmt`, or None."""

@@ -226,7 +226,7 @@ def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
         asyncio.run(second_lifespan())
         assert fast._pool is pool
         other.run_until_complete(fast.close())
-        assert fast._pool is None and (pool is None or pool.is_closing())
+        assert fast._pool is None and (pool is None or pool.closed)
     finally:
         other.close()
 
