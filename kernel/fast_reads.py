@@ -27,7 +27,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.sql import Executable
 
 log = logging.getLogger("drop.api")
-POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (500) rather than queueing without end
+POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (TimeoutError, a 500), not queueing on
 BATCH_MAX = 100  # keys in one batched read
 
 
@@ -71,22 +71,34 @@ class _Connections:
         self._slots: asyncio.LifoQueue = asyncio.LifoQueue()
 
     async def open(self) -> None:
-        for conn in await asyncio.gather(*(self._connect() for _ in range(self.size))):
+        opened = await asyncio.gather(*(self._connect() for _ in range(self.size)), return_exceptions=True)
+        failed = [c for c in opened if isinstance(c, BaseException)]
+        if failed:  # nothing half-open stays behind
+            await asyncio.gather(*(c.close() for c in opened if not isinstance(c, BaseException)))
+            raise failed[0]
+        for conn in opened:
             self._slots.put_nowait(conn)
 
     async def _connect(self):
         conn = await self._connect_fn(self.dsn, record_class=self._row)
-        await _setup(conn)
+        try:
+            await _setup(conn)
+        except BaseException:
+            conn.terminate()
+            raise
         return conn
 
     async def fetch(self, sql: str, args: list[Any]) -> list[Any]:
+        """Raises TimeoutError when no connection comes free within POOL_WAIT_S."""
+        if self.closed:
+            raise RuntimeError("the hot reads' pool is closed")
         if self._slots.empty():
             async with asyncio.timeout(POOL_WAIT_S):
                 conn = await self._slots.get()
         else:
             conn = self._slots.get_nowait()
         try:
-            if conn is None:
+            if conn is None or conn.is_closed():  # a connection the server closed while idle is made again
                 conn = await self._connect()
             return await conn.fetch(sql, *args)
         finally:
@@ -138,9 +150,11 @@ class FastReads:
         from sqlalchemy.dialects.postgresql.asyncpg import PGDialect_asyncpg
 
         self._dialect = PGDialect_asyncpg(paramstyle="numeric_dollar")
-        # What a server restart or a terminated backend raises on a pooled connection's next use.
+        # What a server restart or a terminated backend raises on a pooled connection's next use; not a timeout
+        # (TimeoutError is an OSError) nor a cancelled statement, which are not lost connections.
         self._lost = (asyncpg.ConnectionDoesNotExistError, asyncpg.PostgresConnectionError,
-                      asyncpg.exceptions.OperatorInterventionError, asyncpg.InterfaceError, OSError)
+                      asyncpg.exceptions.AdminShutdownError, asyncpg.exceptions.CrashShutdownError,
+                      asyncpg.InterfaceError, ConnectionError)
         self._loop = asyncio.get_running_loop()
         dsn = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
         # Every connection opened now: a pool that grows on demand makes the read that finds all connections busy
@@ -159,13 +173,13 @@ class FastReads:
         if self._pool is None or asyncio.get_running_loop() is not self._loop:
             return await asyncio.to_thread(self._sync, stmt, params)
         sql, names = self._sql(stmt)
-        args = [params[name] for name in names]
+        args, pool = [params[name] for name in names], self._pool
         try:
-            return await self._pool.fetch(sql, args)
+            return await pool.fetch(sql, args)
         except self._lost as exc:  # the server closed connections (a restart): replace them all, ask again
             log.warning("read retried after a lost database connection: %s", exc)
-            self._pool.renew()
-            return await self._pool.fetch(sql, args)
+            pool.renew()
+            return await pool.fetch(sql, args)
 
     async def one(self, stmt: Executable, **params: Any) -> Any | None:
         """The first row of `stmt`, or None."""
@@ -185,6 +199,7 @@ class FastReads:
             if not self._reading.get(sid):
                 return (await self._read(stmt, column, [key])).get(key)
             batch = self._batches[sid] = _Batch(loop)
+            batch.keys.add(key)  # before the task exists: an eager task factory would start it at once
             batch.rows = loop.create_task(self._send(stmt, column, batch))
         batch.keys.add(key)
         return (await asyncio.shield(batch.rows)).get(key)

@@ -9,11 +9,12 @@ from datetime import datetime, timezone
 
 import psycopg
 import pytest
-from sqlalchemy import select
+from sqlalchemy import bindparam, func, select
 
 from app.core.fast_json import FastJSONResponse
 from app.core.problems import Problem
 from app.jobs import reads, schemas
+from kernel import fast_reads
 from kernel.db import make_sessionmaker
 from kernel.fast_reads import FastReads
 from kernel.ids import new_id
@@ -203,6 +204,34 @@ def test_a_read_survives_the_server_dropping_its_connections(db):
 
     first, again = asyncio.run(run(body)(engine))
     assert again == [first, first]
+
+
+def test_a_read_that_finds_no_free_connection_times_out_and_keeps_the_pool(db, monkeypatch, caplog):
+    """Waiting past POOL_WAIT_S is a TimeoutError (a 500), not a lost connection: the busy connection is not dropped."""
+    engine, _, ids = db
+    if engine.dialect.name != "postgresql":
+        pytest.skip("a PostgreSQL connection pool")
+    monkeypatch.setattr(fast_reads, "POOL_WAIT_S", 0.2)
+    sleep = select(func.pg_sleep(bindparam("seconds")))
+
+    async def body():
+        fast = FastReads(engine, 1)
+        await fast.open()
+        try:
+            (busy,) = [c for c in fast._pool._slots._queue]
+            held = asyncio.ensure_future(fast.all(sleep, seconds=1.0))
+            await asyncio.sleep(0.05)
+            with pytest.raises(TimeoutError):
+                await reads.job(fast, OWNER, ids[0])
+            await held
+            (after,) = [c for c in fast._pool._slots._queue]
+            return busy, after, after.is_closed(), await reads.job(fast, OWNER, ids[0])
+        finally:
+            await fast.close()
+
+    busy, after, closed, job = asyncio.run(body())
+    assert after is busy and not closed and job["id"] == ids[0]
+    assert "lost database connection" not in caplog.text  # no retry, no renewal
 
 
 def test_a_second_event_loop_reads_without_the_first_ones_pool(db):
