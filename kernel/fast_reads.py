@@ -60,8 +60,9 @@ async def _setup(conn) -> None:
 
 
 class _Connections:
-    """Slots of asyncpg connections: each holds an open connection or None, a connection to make when next needed
-    (one found closed, or dropped after another was lost). Taking an idle one never leaves the event loop's turn."""
+    """Slots of asyncpg connections: each holds an open connection or None, a connection to make when next needed.
+    A connection the server closed (a restart, a terminated backend) is made again when its slot is next taken. Taking
+    an idle one never leaves the event loop's turn."""
 
     def __init__(self, dsn: str, size: int):
         import asyncpg
@@ -106,15 +107,6 @@ class _Connections:
                 conn.terminate()
             else:
                 self._slots.put_nowait(None if conn is None or conn.is_closed() else conn)
-
-    def renew(self) -> None:
-        """Drop every idle connection, to be made again when needed: after one was lost, the server may have dropped
-        them all (a restart)."""
-        idle = [self._slots.get_nowait() for _ in range(self._slots.qsize())]
-        for conn in idle:
-            if conn is not None:
-                conn.terminate()
-            self._slots.put_nowait(None)
 
     async def close(self) -> None:
         """Close the idle connections; one still in use is closed when its read ends."""
@@ -176,9 +168,8 @@ class FastReads:
         args, pool = [params[name] for name in names], self._pool
         try:
             return await pool.fetch(sql, args)
-        except self._lost as exc:  # the server closed connections (a restart): replace them all, ask again
+        except self._lost as exc:  # the server closed connections (a restart): ask again, on one made anew
             log.warning("read retried after a lost database connection: %s", exc)
-            pool.renew()
             return await pool.fetch(sql, args)
 
     async def one(self, stmt: Executable, **params: Any) -> Any | None:
@@ -199,9 +190,9 @@ class FastReads:
             if not self._reading.get(sid):
                 return (await self._read(stmt, column, [key])).get(key)
             batch = self._batches[sid] = _Batch(loop)
-            batch.keys.add(key)  # before the task exists: an eager task factory would start it at once
-            batch.rows = loop.create_task(self._send(stmt, column, batch))
         batch.keys.add(key)
+        if batch.rows is None:  # after the key: an eager task factory would start the read at once
+            batch.rows = loop.create_task(self._send(stmt, column, batch))
         return (await asyncio.shield(batch.rows)).get(key)
 
     async def _send(self, stmt: Executable, column: str, batch: _Batch) -> dict[Any, Any]:

@@ -2,7 +2,7 @@
 
 The hot reads (a job, the job list, a job's events) are statements built once and awaited through the API's
 `FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM, and the
-job reads that start together are one statement (`FastReads.keyed`). Their
+job reads that start while one is in flight go as one statement (`FastReads.keyed`). Their
 answers are sent as the dicts the serializers make, which already have the documented shapes: validating them again
 against the response model would only spend the time twice. The other reads take the request's ORM session.
 """
