@@ -174,11 +174,16 @@ def _supervising(workers: int) -> Iterator[None]:
 
 
 def _uvicorn_options(host: str, port: int, workers: int) -> dict:
-    """Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours."""
+    """Each process builds its app (and its logging) from the same DROP_ environment; the access log is ours.
+
+    asyncio's loop even where uvloop is installed (uvicorn's `auto` would take it): uvloop saved health checks and
+    job reads the same few µs, and it closes connections beyond the descriptor limit without the accept-error line
+    that tells an operator why (bench/NOTES.md)."""
     from .serving.http_protocol import IMPORT_PATH
 
     return {"app": "app.main:served_app", "factory": True, "host": host, "port": port, "workers": workers,
-            "log_config": None, "access_log": False, "timeout_graceful_shutdown": GRACEFUL_S, "http": IMPORT_PATH}
+            "log_config": None, "access_log": False, "timeout_graceful_shutdown": GRACEFUL_S, "http": IMPORT_PATH,
+            "loop": "asyncio"}
 
 
 def _run_api(settings, host: str, port: int, workers: int) -> int:

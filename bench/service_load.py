@@ -493,6 +493,13 @@ async def run_load(args, base: str, token: str, api: subprocess.Popen, worker: s
 
 
 # ------------------------------------------------------------------------------------------------ results
+def stamp() -> dict:
+    """When and on which commit a result was measured."""
+    return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "commit": subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True,
+                                     text=True).stdout.strip()}
+
+
 def report(args, rec: Recorder, polled: dict, uploads: list[dict], delays: list[float], upload_bytes: int,
            uploads_s: float, load_start: tuple, rss: dict, job: dict) -> dict:
     """The polled endpoints as wrk measured them, and the SSE connects and uploads as this client did."""
@@ -505,9 +512,7 @@ def report(args, rec: Recorder, polled: dict, uploads: list[dict], delays: list[
     endpoints = dict(sorted(endpoints.items()))
     ok = [u for u in uploads if u["status"] == 201 and u.get("readable")]
     return {
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "commit": subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True,
-                                 text=True).stdout.strip(),
+        **stamp(),
         "settings": {"seconds": args.seconds, "clients": args.clients, "uploads": args.uploads,
                      "upload_mb": args.upload_mb, "sse": args.sse, "rate": args.rate, "api_workers": args.api_workers,
                      "service": "this code" if args.service_repo == REPO else str(args.service_repo)},
@@ -610,6 +615,21 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_ceiling(args, limits: dict) -> int:
+    """`--ceiling-only`: the ceiling's table, with the date, commit and machine it was measured on."""
+    result = {**stamp(), "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "note": args.note},
+              "ceiling": limits}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    m = result["machine"]
+    text = "\n".join([f"# Ceiling of the API ({result['date']}, {result['commit']})", "",
+                      f"Machine: {m['cpus']} cores, {m['platform']}." + (f" {m['note']}" if m["note"] else ""), "",
+                      *ceiling_markdown(limits)]) + "\n"
+    (args.out / f"{args.name}.md").write_text(text)
+    print(text)
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=60.0, help="how long the load lasts")
@@ -626,6 +646,7 @@ def main() -> int:
                         help="a checkout measured beside this code in the ceiling (same run, alternating rounds)")
     parser.add_argument("--ceiling-rounds", type=int, default=4, help="0 skips the ceiling")
     parser.add_argument("--ceiling-round-s", type=float, default=3.0)
+    parser.add_argument("--ceiling-only", action="store_true", help="measure the ceiling alone, no load after it")
     parser.add_argument("--name", default="service_load", help="results file stem in --out")
     parser.add_argument("--note", default="", help="a sentence about the machine for the markdown (background load)")
     parser.add_argument("--out", type=Path, default=REPO / "bench/results")
@@ -640,6 +661,8 @@ def main() -> int:
         print(f"making datasets in {folder}", flush=True)
         train, upload = make_files(folder, args.upload_mb)
         limits = ceiling(args, folder) if args.ceiling_rounds else None
+        if args.ceiling_only:
+            return write_ceiling(args, limits)
         print("starting PostgreSQL database, API and worker", flush=True)
         with service(folder, upload.stat().st_size, args.service_repo, args.api_workers) as (base, token, api, worker):
             result = asyncio.run(run_load(args, base, token, api, worker, train, upload))

@@ -22,7 +22,7 @@ import asyncio
 import logging
 from typing import Any, Sequence
 
-import pydantic_core
+import orjson
 from sqlalchemy.engine import Engine
 from sqlalchemy.sql import Executable
 
@@ -53,10 +53,12 @@ def _row_class():
 
 
 async def _setup(conn) -> None:
-    """json and jsonb columns (a job's config and metrics) parsed by pydantic-core, as dicts and lists."""
+    """json and jsonb columns (a job's config and metrics, a dataset's report) come back unparsed, as
+    `orjson.Fragment`s of their text: the API only writes them out again (app/core/fast_json.py), and parsing a job's
+    config cost 8.8 µs of a job read. A caller that needs the values parses them itself."""
     for name in ("json", "jsonb"):
-        await conn.set_type_codec(name, schema="pg_catalog", decoder=pydantic_core.from_json,
-                                  encoder=lambda value: pydantic_core.to_json(value).decode())
+        await conn.set_type_codec(name, schema="pg_catalog", decoder=orjson.Fragment,
+                                  encoder=lambda value: orjson.dumps(value).decode())
 
 
 class _Connections:
@@ -126,7 +128,6 @@ class FastReads:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lost: tuple[type[Exception], ...] = ()
         self._batches: dict[int, _Batch] = {}  # id(statement) -> the batch still taking keys
-        self._reading: dict[int, int] = {}  # id(statement) -> its keyed reads in flight
 
     @property
     def on_postgresql(self) -> bool:
@@ -180,15 +181,14 @@ class FastReads:
     async def keyed(self, stmt: Executable, column: str, key: Any) -> Any | None:
         """The row of `stmt` whose `column` is `key`, or None; `stmt` takes the bindparam `keys`, a list.
 
-        With no read of `stmt` in flight this one is sent at once. Otherwise it joins the batch of every keyed read
-        of `stmt` that starts meanwhile, sent as one statement on the loop's next turn: under load one round trip
-        serves many requests, and a quiet server adds no wait. A read joins only a batch not yet sent, so it still
-        sees every write committed before it began."""
+        Every keyed read of `stmt` that starts in one turn of the event loop joins one batch, sent as one statement
+        on the loop's next turn: under load one round trip serves the requests that arrived together, and a quiet
+        server waits one turn, microseconds. Sending the first read at once and batching only those that start
+        while it is in flight cost a job read 16-26 µs more of the API's CPU under load (bench/NOTES.md). A read
+        joins only a batch not yet sent, so it still sees every write committed before it began."""
         loop, sid = asyncio.get_running_loop(), id(stmt)
         batch = self._batches.get(sid)
         if batch is None or batch.loop is not loop or len(batch.keys) >= BATCH_MAX:
-            if not self._reading.get(sid):
-                return (await self._read(stmt, column, [key])).get(key)
             batch = self._batches[sid] = _Batch(loop)
         batch.keys.add(key)
         if batch.rows is None:  # after the key: an eager task factory would start the read at once
@@ -198,15 +198,7 @@ class FastReads:
     async def _send(self, stmt: Executable, column: str, batch: _Batch) -> dict[Any, Any]:
         if self._batches.get(id(stmt)) is batch:
             del self._batches[id(stmt)]
-        return await self._read(stmt, column, list(batch.keys))
-
-    async def _read(self, stmt: Executable, column: str, keys: list[Any]) -> dict[Any, Any]:
-        sid = id(stmt)
-        self._reading[sid] = self._reading.get(sid, 0) + 1
-        try:
-            return {getattr(row, column): row for row in await self.all(stmt, keys=keys)}
-        finally:
-            self._reading[sid] -= 1
+        return {getattr(row, column): row for row in await self.all(stmt, keys=list(batch.keys))}
 
     def _sql(self, stmt: Executable) -> tuple[str, tuple[str, ...]]:
         found = self._compiled.get(id(stmt))

@@ -18,7 +18,7 @@ from kernel.fast_reads import FastReads
 from kernel.job_state import FINAL
 
 from ..core.deps import AppSettings, DbSession, OwnerId
-from ..core.fast_json import FastJSONResponse
+from ..core.fast_json import FastJSONResponse, dumps
 from ..core.openapi import BINARY
 from ..core.pages import Page
 from . import reads
@@ -35,7 +35,8 @@ async def _frames(fast_reads: FastReads, job_id: str, after: int) -> tuple[list[
     """(event id, its SSE frame) of the events after `after`, and the job's status: made once for all the streams
     that share the read."""
     items, status = await reads.events_after(fast_reads, job_id, after, 500)
-    frames = [(item["id"], f"id: {item['id']}\nevent: {item['type']}\ndata: {json.dumps(item)}\n\n") for item in items]
+    frames = [(item["id"], f"id: {item['id']}\nevent: {item['type']}\ndata: {dumps(item).decode()}\n\n")
+              for item in items]
     return frames, status
 
 

@@ -1,10 +1,11 @@
 """What the job routes read: a job by its owner (404 otherwise), the job list, a job's events and its outputs.
 
 The hot reads (a job, the job list, a job's events) are statements built once and awaited through the API's
-`FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM, and the
-job reads that start while one is in flight go as one statement (`FastReads.keyed`). Their
-answers are sent as the dicts the serializers make, which already have the documented shapes: validating them again
-against the response model would only spend the time twice. The other reads take the request's ORM session.
+`FastReads` (kernel/fast_reads.py): on PostgreSQL they run on the event loop, with no thread hop and no ORM, the
+job reads that start in one turn of the loop go as one statement (`FastReads.keyed`), and stored JSON (a job's config)
+passes through unparsed. Their answers are sent as the dicts the serializers make, which already have the documented
+shapes: validating them again against the response model would only spend the time twice. The other reads take the
+request's ORM session.
 """
 from __future__ import annotations
 
