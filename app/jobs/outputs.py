@@ -31,13 +31,23 @@ MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a lar
 After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
 
 
+# What may not appear raw in an event's one `data:` line. A stored JSON column passes through as its text, where a line
+# break can only be whitespace, so it becomes a space. orjson writes non-ASCII as is, and clients that split lines with
+# str.splitlines (httpx's iter_lines) also break at NEL and the Unicode line and paragraph separators, which JSON
+# allows only inside strings, where their escapes mean the same.
+_ONE_LINE = str.maketrans({"\n": " ", "\r": " ", "\x85": "\\u0085", "\u2028": "\\u2028", "\u2029": "\\u2029"})
+
+
+def sse_event(item: dict) -> str:
+    """An event as one server-sent event: its id, type and JSON on a single data line."""
+    return f"id: {item['id']}\nevent: {item['type']}\ndata: {dumps(item).decode().translate(_ONE_LINE)}\n\n"
+
+
 async def _frames(fast_reads: FastReads, job_id: str, after: int) -> tuple[list[tuple[int, str]], str | None]:
     """(event id, its SSE frame) of the events after `after`, and the job's status: made once for all the streams
     that share the read."""
     items, status = await reads.events_after(fast_reads, job_id, after, 500)
-    frames = [(item["id"], f"id: {item['id']}\nevent: {item['type']}\ndata: {dumps(item).decode()}\n\n")
-              for item in items]
-    return frames, status
+    return [(item["id"], sse_event(item)) for item in items], status
 
 
 async def _stream(request: Request, job_id: str, after: int, release: Callable[[], None]):
