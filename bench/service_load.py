@@ -87,14 +87,22 @@ def make_files(folder: Path, upload_mb: float) -> tuple[Path, Path]:
 # ------------------------------------------------------------------------------------------------ the service
 # `drop api` with the request observation (request id, HTTP metrics, access line) taken out: the ceiling's baseline
 # for what observing costs. One process only: uvicorn then serves in the process that patched the app.
+_RUN_DROP = "sys.argv[0] = 'drop'; from app.cli import main; main()"
 UNOBSERVED_NAME = "this code, no request observation"
-UNOBSERVED = ("import sys, app.main; app.main.ObserveRequests = lambda inner: inner; sys.argv[0] = 'drop'; "
-              "from app.cli import main; main()")
+UNOBSERVED = f"import sys, app.main; app.main.ObserveRequests = lambda inner: inner; {_RUN_DROP}"
+# The same with uvicorn's own access log in its default text format, as the API logged before the observation and
+# the JSON logs: what the logging change costs against the service it replaced.
+UVICORN_LOG_NAME = "no request observation, uvicorn's access log"
+UVICORN_LOG = ("import sys, uvicorn.config, app.main, app.cli as cli; app.main.ObserveRequests = lambda inner: inner; "
+               "app.main.configure = lambda *a, **k: None; options = cli._uvicorn_options; "
+               "cli._uvicorn_options = lambda *a: {**options(*a), 'access_log': True, "
+               f"'log_config': uvicorn.config.LOGGING_CONFIG}}; {_RUN_DROP}")
 
 
-def api_command(repo: Path, port: int, workers: int, observed: bool = True) -> list[str]:
-    """`drop api` from `repo` with `workers` processes; a checkout from before `--workers` existed runs one anyway."""
-    start = ["-m", "app.cli"] if observed else ["-c", UNOBSERVED]
+def api_command(repo: Path, port: int, workers: int, code: str | None = None) -> list[str]:
+    """`drop api` from `repo` with `workers` processes, or `code` run as `python -c` in its place; a checkout from
+    before `--workers` existed runs one anyway."""
+    start = ["-m", "app.cli"] if code is None else ["-c", code]
     command = [sys.executable, *start, "api", "--host", "127.0.0.1", "--port", str(port)]
     return command + (["--workers", str(workers)] if "--workers" in (repo / "app/cli.py").read_text() else [])
 
@@ -145,7 +153,7 @@ def drop_queue(queue: str) -> None:
 
 @contextmanager
 def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int,
-             observed: bool = True) -> Iterator[tuple[str, str, str, int]]:
+             code: str | None = None) -> Iterator[tuple[str, str, str, int]]:
     """(API url, token, a job's path, the API's pid) of a `drop api` from `repo` with no worker at all, on a database
     of its own holding one queued job: the API's own ceiling, nothing else running."""
     from tests.service.datasets import tiny_npz
@@ -162,7 +170,7 @@ def idle_api(folder: Path, repo: Path, extra_env: dict[str, str], workers: int,
                                    check=True, capture_output=True, text=True).stdout.strip()
             port = free_port()
             with (folder / "api.log").open("ab") as out:
-                api = subprocess.Popen(api_command(repo, port, workers, observed), cwd=repo, env=env, stdout=out,
+                api = subprocess.Popen(api_command(repo, port, workers, code), cwd=repo, env=env, stdout=out,
                                        stderr=subprocess.STDOUT, start_new_session=True)
             try:
                 base = f"http://127.0.0.1:{port}"
@@ -218,16 +226,16 @@ def ceiling(args, folder: Path) -> dict:
     machine's drift falls on all of them alike."""
     if shutil.which("wrk") is None:
         raise SystemExit("the ceiling needs wrk (apt-get install wrk), or --ceiling-rounds 0")
-    variants = [("this code", REPO, {}, True), ("this code, access log off", REPO, {"DROP_LOG_LEVEL": "WARNING"}, True)]
+    variants = [("this code", REPO, {}, None), ("this code, access log off", REPO, {"DROP_LOG_LEVEL": "WARNING"}, None)]
     if args.api_workers == 1:
-        variants.append((UNOBSERVED_NAME, REPO, {}, False))
+        variants += [(UNOBSERVED_NAME, REPO, {}, UNOBSERVED), (UVICORN_LOG_NAME, REPO, {}, UVICORN_LOG)]
     if args.before_repo:
-        variants.append(("before", args.before_repo, {}, True))
+        variants.append(("before", args.before_repo, {}, None))
     with ExitStack() as stack:
         targets = []
-        for i, (name, repo, extra, observed) in enumerate(variants):
+        for i, (name, repo, extra, code) in enumerate(variants):
             base, token, job, pid = stack.enter_context(idle_api(folder / f"ceiling-{i}", repo, extra,
-                                                                 args.api_workers, observed))
+                                                                 args.api_workers, code))
             targets += [(name, "GET /healthz", base + "/healthz", token, pid),
                         (name, "GET /v1/jobs/{id}", base + job, token, pid)]
         runs: dict[tuple[str, str], list[tuple[float, int, float, float]]] = defaultdict(list)
@@ -560,6 +568,9 @@ def ceiling_markdown(c: dict) -> list[str]:
     if UNOBSERVED_NAME in table:
         lines.append("Observing requests (request id, HTTP metrics, access line) costs " + cost(
             table[UNOBSERVED_NAME], "this code against itself with the observing middleware taken out"))
+    if UVICORN_LOG_NAME in table:
+        lines.append("Against uvicorn's own access log with no observation, as the API logged before, observing costs "
+                     + cost(table[UVICORN_LOG_NAME], "a negative share is a saving"))
     if "before" in table:
         lines.append(f"Against the code before, healthz runs at "
                      f"{here['GET /healthz']['rps'] / table['before']['GET /healthz']['rps']:.0%} and the job read at "
