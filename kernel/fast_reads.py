@@ -184,7 +184,7 @@ class FastReads:
         Every keyed read of `stmt` that starts in one turn of the event loop joins one batch, sent as one statement
         on the loop's next turn: under load one round trip serves the requests that arrived together, and a quiet
         server waits one turn, microseconds. Sending the first read at once and batching only those that start
-        while it is in flight cost a job read 16-26 µs more of the API's CPU under load (bench/NOTES.md). A read
+        while it is in flight cost a job read about 16 µs more of the API's CPU under load (bench/NOTES.md). A read
         joins only a batch not yet sent, so it still sees every write committed before it began."""
         loop, sid = asyncio.get_running_loop(), id(stmt)
         batch = self._batches.get(sid)
