@@ -98,6 +98,12 @@ class SACConfig(_Strict):
         False, description="layer norm after each hidden layer of the critics: it bounds how far Q can extrapolate "
                            "beyond the values it was fitted on, the over-estimation that made hopper collapse "
                            "(bench/QUALITY.md E5); False is the paper's plain MLP")
+    actor_average: float = Field(1.0, gt=0, le=1, description=(
+        "Polyak weight of the newest actor iterate in the policy that is evaluated and exported: 1 is the latest "
+        "iterate (the paper); below 1 the running mean of the iterates until it spans 1/actor_average updates, then "
+        "their exponential average, as weight averaging steadies deep RL (Nikishin et al. 2018). The rollouts, DICE "
+        "and the updates still use the latest iterate, so training is unchanged and each evaluation also records "
+        "that iterate's score (bench/QUALITY.md E41)"))
     value_bound: bool = Field(
         False, description="clip the bootstrapped Q in the critics' target at the largest soft Q possible if no "
                            "step earns more than the data's largest reward, (r_max + gamma alpha |A| log 2) / "

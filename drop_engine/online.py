@@ -280,9 +280,9 @@ class OnlineSAC:
 
     def _snapshot(self) -> Snapshot:
         """Evaluate the current deterministic policy (fixed seeds, so policies compare fairly) and keep a copy."""
-        result = evaluate(actor_fn(self.sac.actor, True), self.cfg.env, self.cfg.eval_episodes,
+        result = evaluate(actor_fn(self.sac.policy, True), self.cfg.env, self.cfg.eval_episodes,
                           seed=10_000 + self.cfg.seed, version=self.cfg.version)
-        actor = {k: v.detach().clone() for k, v in self.sac.actor.state_dict().items()}
+        actor = {k: v.detach().clone() for k, v in self.sac.policy.state_dict().items()}
         snap = Snapshot(self.step, result.mean_return, result.normalized_score, actor)
         self.snapshots.append(snap)
         if self.medium is None and self.step > 0 and snap.mean_return >= self.cfg.threshold:  # step 0 is `random`

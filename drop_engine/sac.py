@@ -7,6 +7,7 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.optim.swa_utils import AveragedModel
 
 from .config import SACConfig
 from .nn import EnsembleMLP, Standardize, adam, mlp, soft_update
@@ -41,6 +42,16 @@ class Actor(nn.Module):
         if deterministic:
             return torch.tanh(self(obs)[0])
         return self.sample(obs)[0]
+
+
+def _iterate_average(actor: Actor, weight: float) -> AveragedModel:
+    """Averages the actor's iterates: the n-th enters with weight max(weight, 1/n), a running mean that becomes an
+    exponential one, so the initial random weights fade within 1/weight updates instead of lingering. The buffers
+    (the input standardisation) are copied, not averaged."""
+    def lerp(averaged: list[torch.Tensor], current: list[torch.Tensor], n_averaged: torch.Tensor) -> None:
+        torch._foreach_lerp_(averaged, current, max(weight, 1.0 / (int(n_averaged) + 1)))
+
+    return AveragedModel(actor, multi_avg_fn=lerp).requires_grad_(False)
 
 
 def _squashed_log_prob(u: torch.Tensor, mu: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
@@ -78,6 +89,12 @@ class SAC(nn.Module):
         self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)
         self.max_reward = math.inf  # the data's largest reward (set_reward_bound), read with value_bound
         self.max_entropy = act_dim * math.log(2.0)  # of the uniform distribution on [-1, 1]^|A|
+        self.actor_average = _iterate_average(self.actor, cfg.actor_average) if cfg.actor_average < 1 else None
+
+    @property
+    def policy(self) -> Actor:
+        """The actor that is evaluated and exported: the average of the iterates with `actor_average` < 1."""
+        return self.actor if self.actor_average is None else self.actor_average.module
 
     def anneal(self, progress: float) -> None:
         """Set the actor's learning rate for the point `progress` in [0, 1) of the run. It is a function of where the
@@ -87,7 +104,7 @@ class SAC(nn.Module):
                 group["lr"] = self.cfg.actor_lr * 0.5 * (1 + math.cos(math.pi * progress))
 
     def set_obs_normalizer(self, mean, std) -> None:
-        for module in (self.actor.norm, self.critic.norm, self.critic_target.norm):
+        for module in (self.actor.norm, self.policy.norm, self.critic.norm, self.critic_target.norm):
             module.set(mean, std)
 
     def set_reward_bound(self, max_reward: float) -> None:
@@ -131,6 +148,8 @@ class SAC(nn.Module):
         self.actor_optim.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_optim.step()
+        if self.actor_average is not None:
+            self.actor_average.update_parameters(self.actor)
 
         alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
         self.alpha_optim.zero_grad(set_to_none=True)

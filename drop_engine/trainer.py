@@ -307,9 +307,8 @@ class Trainer:
             self._report(dict(zip(self.metric_sums, values.tolist())), self.global_step)
         self.metric_sums, self.metric_count = {}, 0
 
-    def evaluate_now(self, epoch: int) -> dict:
-        """Evaluate the actor as that of `epoch` (which seeds the episodes); `Stopped` if the caller stops it."""
-        actor, dev = self.sac.actor, self.device
+    def _evaluate(self, actor: Actor, epoch: int):
+        dev = self.device
 
         def policy(obs: np.ndarray) -> np.ndarray:
             with torch.no_grad():
@@ -317,12 +316,21 @@ class Trainer:
 
         start = time.perf_counter()
         try:
-            result = evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + epoch,
-                              version=self.env_version, should_stop=self.cb.should_stop)
+            return evaluate(policy, self.cfg.env, self.cfg.eval_episodes, seed=10_000 * (self.cfg.seed + 1) + epoch,
+                            version=self.env_version, should_stop=self.cb.should_stop)
         finally:
             self.timings["evaluate"] += time.perf_counter() - start
+
+    def evaluate_now(self, epoch: int) -> dict:
+        """Evaluate the policy as that of `epoch` (which seeds the episodes); `Stopped` if the caller stops it. With an
+        averaged actor the latest iterate is evaluated too, on the same episodes, and recorded as `live_*`."""
+        actor = self.sac.policy
+        result = self._evaluate(actor, epoch)
         record = {"epoch": epoch, "step": self.global_step, "return": result.mean_return,
                   "return_std": result.std_return, "normalized_score": result.normalized_score}
+        if actor is not self.sac.actor:
+            live = self._evaluate(self.sac.actor, epoch)
+            record.update(live_return=live.mean_return, live_normalized_score=live.normalized_score)
         self.evaluations.append(record)
         if summarize(self._scores()).best_epoch == epoch:
             self.best = BestActor(epoch, result.normalized_score, _cpu_copy(actor.state_dict()))
@@ -442,14 +450,15 @@ class Trainer:
     def export(self) -> dict[Which, dict[str, str]]:
         """OUT/policy/last (the actor now) and OUT/policy/best (the best evaluated actor; the last if none was)."""
         cfg = self.cfg
-        last = self._export("last", self.sac.actor, self.epoch, dict(self._scores()).get(self.epoch), {})
+        policy = self.sac.policy
+        last = self._export("last", policy, self.epoch, dict(self._scores()).get(self.epoch), {})
         if self.best is None:
             why = ("the best evaluation's weights were not kept (the run resumed from a checkpoint of format 1)"
                    if self.evaluations else "no evaluation ran")
-            best = self._export("best", self.sac.actor, self.epoch, None,
+            best = self._export("best", policy, self.epoch, None,
                                 {"selected_by": f"{why}: this is the last policy"})
         else:
-            actor = copy.deepcopy(self.sac.actor)  # not a new Actor: its initialisation would draw from the RNG
+            actor = copy.deepcopy(policy)  # not a new Actor: its initialisation would draw from the RNG
             actor.load_state_dict(self.best.state)
             best = self._export("best", actor, self.best.epoch, self.best.score, {"selected_by": (
                 f"the highest normalised score (the earliest of ties) over the run's simulator evaluations: "

@@ -240,3 +240,28 @@ def test_value_ceiling_is_never_below_a_terminal_reward():
     assert float(sac.value_ceiling(torch.tensor(0.1))) == -5.0
     sac.set_reward_bound(5.0)
     assert float(sac.value_ceiling(torch.tensor(0.1))) == pytest.approx((5.0 + 0.099 * 2 * np.log(2.0)) / 0.01)
+
+
+def test_averaged_actor_is_the_running_mean_then_an_exponential_one():
+    """The n-th iterate enters with weight max(actor_average, 1/n): the mean of the first four, then weight 1/4; the
+    input standardisation is the live actor's, not averaged; with 1 the policy is the live actor."""
+    plain = SAC(3, 2, SACConfig(hidden=(16, 16)))
+    assert plain.policy is plain.actor and plain.actor_average is None
+    torch.manual_seed(0)
+    sac = SAC(3, 2, SACConfig(hidden=(16, 16), actor_average=0.25))
+    sac.set_obs_normalizer(np.full(3, 2.0), np.full(3, 3.0))
+    gen = torch.Generator().manual_seed(1)
+    expected = None
+    for n in range(1, 8):
+        obs, next_obs = torch.randn(32, 3, generator=gen), torch.randn(32, 3, generator=gen)
+        sac.update(obs, torch.rand(32, 2, generator=gen) * 2 - 1, torch.randn(32, generator=gen), next_obs,
+                   torch.zeros(32))
+        live = [p.detach().clone() for p in sac.actor.parameters()]
+        weight = max(0.25, 1 / n)
+        expected = live if expected is None else [e + weight * (x - e) for e, x in zip(expected, live)]
+    for averaged, want, live_p in zip(sac.policy.parameters(), expected, sac.actor.parameters()):
+        torch.testing.assert_close(averaged, want)
+        assert not torch.equal(averaged, live_p)
+    assert sac.policy is not sac.actor and not any(p.requires_grad for p in sac.policy.parameters())
+    torch.testing.assert_close(sac.policy.norm.mean, torch.full((3,), 2.0))
+    torch.testing.assert_close(sac.policy.norm.std, torch.full((3,), 3.0))

@@ -120,12 +120,38 @@ def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_datase
     assert not torch.allclose(torch.as_tensor(actions["best"]), torch.as_tensor(actions["last"]))
 
 
+def test_an_averaged_actor_changes_what_is_evaluated_and_exported_not_the_training(tmp_path, hopper_dataset):
+    """The same run with and without `sac.actor_average`: the live actor ends with the same weights and its
+    evaluations, recorded as `live_*`, are the plain run's; the scores and both exported policies are the average's."""
+    plain = Trainer(hopper_dataset, _config("mopo", epochs=3), tmp_path / "plain")
+    plain_result = plain.run()  # before the next Trainer: each seeds the process's RNGs
+    averaged = Trainer(hopper_dataset, _config("mopo", epochs=3, sac={"actor_average": 0.02}), tmp_path / "averaged")
+    result = averaged.run()
+
+    assert [e["live_normalized_score"] for e in result.evaluations] == [
+        e["normalized_score"] for e in plain_result.evaluations]
+    assert [e["live_return"] for e in result.evaluations] == [e["return"] for e in plain_result.evaluations]
+    for a, b in zip(averaged.sac.actor.parameters(), plain.sac.actor.parameters()):
+        assert torch.equal(a, b)
+    assert all("live_normalized_score" not in e for e in plain_result.evaluations)
+    obs = torch.as_tensor(hopper_dataset.observations[:64])
+    with torch.no_grad():
+        expected = averaged.sac.policy.act(obs, deterministic=True)
+        live = averaged.sac.actor.act(obs, deterministic=True)
+    exported = torch.as_tensor(load_policy(result.policy["last"]["torchscript"])(obs.numpy()))
+    torch.testing.assert_close(exported, expected, atol=1e-6, rtol=0)
+    assert not torch.allclose(exported, live, atol=1e-3)
+    best = torch.load(result.policy["best"]["state_dict"])
+    assert best.keys() == averaged.sac.actor.state_dict().keys()
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     whole = Recorder()
     # An averaged DICE estimator too: its average is state a resumed run must restore, or its penalties differ; and
     # the annealed actor rate, which a resumed run must set as the uninterrupted one did.
-    cfg = _config("drop", epochs=3, dice={"average": 0.5}, sac={"actor_lr_schedule": "cosine"})
+    # An averaged actor as well, whose average and its count a resumed run must restore.
+    cfg = _config("drop", epochs=3, dice={"average": 0.5}, sac={"actor_lr_schedule": "cosine", "actor_average": 0.1})
     trainer = Trainer(hopper_dataset, cfg, tmp_path_factory.mktemp("whole"), whole)
     trainer.run()
     return trainer, whole
