@@ -32,7 +32,7 @@ from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import build_config, parse_override
 from drop_engine.data import load_dataset
 from drop_engine.run_log import RunLog
-from drop_engine.scores import FINAL_WINDOW
+from drop_engine.scores import FINAL_WINDOW, summarize
 from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
@@ -81,6 +81,20 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
                    "seconds": time.perf_counter() - start})
     write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
     return record
+
+
+def latest_iterate(record: dict, overrides: list[str]) -> dict | None:
+    """A run whose only override is `sac.actor_average` trains as the run without it and evaluates its latest
+    iterate too (`live_*`; tests/engine/test_trainer.py asserts they are that run's numbers), so it also holds the
+    plain setting's record: one run, both rows of the ablation."""
+    if record["algorithm"] == "bc" or [o.split("=", 1)[0] for o in overrides] != ["sac.actor_average"]:
+        return None
+    evaluations = [{k: v for k, v in e.items() if not k.startswith("live_")}
+                   | {"return": e["live_return"], "normalized_score": e["live_normalized_score"]}
+                   for e in record["evaluations"]]
+    summary = summarize([(e["epoch"], e["normalized_score"]) for e in evaluations])
+    return {**record, "evaluations": evaluations, "final": summary.final_score, "best": summary.best_score,
+            "best_epoch": summary.best_epoch, "derived_from": overrides}
 
 
 def key(r: dict) -> tuple:
@@ -166,26 +180,27 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results = out / "paper_table.json"
     same_setting = {"preset": args.preset, "set": sorted(args.set), "revision": REVISION}
+    plain_setting = {**same_setting, "set": []}
     bc = bc_setting(args.bc_steps)
     kept = json.loads(results.read_text()) if results.exists() else {}
     behaviour: dict[str, dict] = {}
     # Each setting trains in its own directory, so a finished run of one setting is never taken for another's.
     runs = Path(args.runs) / "_".join([f"{args.preset}-r{REVISION}", *same_setting["set"]]).replace("/", "-")
 
-    def write(record: dict | None = None) -> str:
+    def write(record: dict | None = None, setting: dict = same_setting) -> str:
         """Merge into the file as it is now (another invocation may be filling other rows), under a lock."""
         with open(results.with_suffix(".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             now = json.loads(results.read_text()) if results.exists() else {}
             merged = [r for r in now.get("records", [])
-                      if record is None or not (r["setting"] == same_setting and key(r) == key(record))]
-            merged += [{**record, "setting": same_setting}] if record else []
+                      if record is None or not (r["setting"] == setting and key(r) == key(record))]
+            merged += [{**record, "setting": setting}] if record else []
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
-        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == same_setting and current(r, bc)),
+        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == setting and current(r, bc)),
                       key=key)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine}
-        overrides = " ".join(same_setting["set"])
+        overrides = " ".join(setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
                 f"BC: a tanh-Gaussian actor fitted by maximum likelihood for {args.bc_steps:,} steps, acting with its "
@@ -193,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
         # Another preset, or a setting with overrides (an ablation), gets a table of its own: never the cpu preset's.
         preset = [] if args.preset == "cpu" else [args.preset]
-        name = "_".join(["paper_table", *preset, *same_setting["set"]]).replace("/", "-").replace("=", "-")
+        name = "_".join(["paper_table", *preset, *setting["set"]]).replace("/", "-").replace("=", "-")
         (out / f"{name}.md").write_text(text)
         return text
 
@@ -226,6 +241,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{record['env']}-{record['kind']} {record['algorithm']} seed {record['seed']}: "
                   f"final {record['final']:.1f}", flush=True)
             write(record)
+            if (plain := latest_iterate(record, same_setting["set"])) is not None:
+                recorded = [r for r in json.loads(results.read_text())["records"] if r["setting"] == plain_setting
+                            and key(r) == key(plain) and r.get("dataset") == plain["dataset"]]
+                if not recorded:
+                    write(plain, plain_setting)
+                else:  # the plain run exists: keep it, and say whether the latest iterate reproduced it
+                    same = [e["normalized_score"] for e in recorded[0]["evaluations"]] == [
+                        e["normalized_score"] for e in plain["evaluations"]]
+                    print(f"  its latest iterate {'reproduces' if same else 'differs from'} the recorded plain run",
+                          flush=True)
     print(write())
     return 0
 
