@@ -84,14 +84,16 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
 
 
 def latest_iterate(record: dict, overrides: list[str]) -> dict | None:
-    """A run whose only override is `sac.actor_average` trains as the run without it and evaluates its latest
-    iterate too (`live_*`; tests/engine/test_trainer.py asserts they are that run's numbers), so it also holds the
-    plain setting's record: one run, both rows of the ablation."""
-    if record["algorithm"] == "bc" or [o.split("=", 1)[0] for o in overrides] != ["sac.actor_average"]:
+    """The plain setting's record held by a run whose only override is `sac.actor_average`: such a run trains as the
+    plain one and also scores its latest iterate on the same episodes (`live_*`), so one run gives both rows of the
+    ablation (tests/engine/test_trainer.py holds the two runs' numbers equal)."""
+    evaluations = record.get("evaluations") or [{}]
+    if ([o.split("=", 1)[0] for o in overrides] != ["sac.actor_average"]
+            or not all("live_normalized_score" in e for e in evaluations)):
         return None
-    evaluations = [{k: v for k, v in e.items() if not k.startswith("live_")}
-                   | {"return": e["live_return"], "normalized_score": e["live_normalized_score"]}
-                   for e in record["evaluations"]]
+    evaluations = [{"epoch": e["epoch"], "step": e["step"],
+                    **{k.removeprefix("live_"): v for k, v in e.items() if k.startswith("live_")}}
+                   for e in evaluations]
     summary = summarize([(e["epoch"], e["normalized_score"]) for e in evaluations])
     return {**record, "evaluations": evaluations, "final": summary.final_score, "best": summary.best_score,
             "best_epoch": summary.best_epoch, "derived_from": overrides}
@@ -99,6 +101,18 @@ def latest_iterate(record: dict, overrides: list[str]) -> dict | None:
 
 def key(r: dict) -> tuple:
     return r["env"], r["kind"], r["algorithm"], r["seed"]
+
+
+def merge(records: list[dict], record: dict, setting: dict) -> list[dict]:
+    """`records` with `record` in: it replaces the record of its setting and key on the same file (a run on another
+    file is another run, and stays); a derived record (`latest_iterate`) replaces nothing, as a recorded run is the
+    measurement and the derived one only its reproduction."""
+    def same(r: dict) -> bool:
+        return r["setting"] == setting and key(r) == key(record) and r.get("dataset") == record["dataset"]
+
+    if "derived_from" in record and any(same(r) for r in records):
+        return records
+    return [r for r in records if not same(r)] + [{**record, "setting": setting}]
 
 
 def describe(path: Path) -> dict:
@@ -132,6 +146,11 @@ def table(records: list[dict], behaviour: dict[str, float | None], algorithms: l
             runs = [r for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
             row += [cell([r["final"] for r in runs]), cell([r["best"] for r in runs])]
         lines.append("| " + " | ".join(row) + " |")
+    derived = [f"{r['env']}-{r['kind']} {r['algorithm'].upper()} seed {r['seed']} ({' '.join(r['derived_from'])})"
+               for r in records if "derived_from" in r]
+    if derived:
+        lines += ["", "From the latest iterate of a run that evaluated an average of the actor's iterates beside it "
+                      "(it trains as the plain run; bench/QUALITY.md E41): " + "; ".join(derived) + "."]
     return "\n".join(lines) + "\n" + targets(records, list(behaviour))
 
 
@@ -192,9 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         with open(results.with_suffix(".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             now = json.loads(results.read_text()) if results.exists() else {}
-            merged = [r for r in now.get("records", [])
-                      if record is None or not (r["setting"] == setting and key(r) == key(record))]
-            merged += [{**record, "setting": setting}] if record else []
+            merged = now.get("records", []) if record is None else merge(now.get("records", []), record, setting)
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
         mine = sorted((r for r in on_file(merged, scores) if r["setting"] == setting and current(r, bc)),
@@ -242,15 +259,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"final {record['final']:.1f}", flush=True)
             write(record)
             if (plain := latest_iterate(record, same_setting["set"])) is not None:
-                recorded = [r for r in json.loads(results.read_text())["records"] if r["setting"] == plain_setting
-                            and key(r) == key(plain) and r.get("dataset") == plain["dataset"]]
-                if not recorded:
-                    write(plain, plain_setting)
-                else:  # the plain run exists: keep it, and say whether the latest iterate reproduced it
-                    same = [e["normalized_score"] for e in recorded[0]["evaluations"]] == [
-                        e["normalized_score"] for e in plain["evaluations"]]
-                    print(f"  its latest iterate {'reproduces' if same else 'differs from'} the recorded plain run",
-                          flush=True)
+                write(plain, plain_setting)
     print(write())
     return 0
 

@@ -102,8 +102,8 @@ class SACConfig(_Strict):
         "Polyak weight of the newest actor iterate in the policy that is evaluated and exported: 1 is the latest "
         "iterate (the paper); below 1 the running mean of the iterates until it spans 1/actor_average updates, then "
         "their exponential average, as weight averaging steadies deep RL (Nikishin et al. 2018). The rollouts, DICE "
-        "and the updates still use the latest iterate, so training is unchanged and each evaluation also records "
-        "that iterate's score (bench/QUALITY.md E41)"))
+        "and the updates still use the latest iterate, so training is unchanged, and each of a training run's "
+        "evaluations also records that iterate's score as live_* (bench/QUALITY.md E41)"))
     value_bound: bool = Field(
         False, description="clip the bootstrapped Q in the critics' target at the largest soft Q possible if no "
                            "step earns more than the data's largest reward, (r_max + gamma alpha |A| log 2) / "

@@ -1,6 +1,7 @@
 """Batched ensemble layers: M independent networks run as one batched matmul, never a Python loop over members."""
 from __future__ import annotations
 
+import copy
 import math
 from typing import Sequence
 
@@ -81,6 +82,33 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
     """Polyak averaging, fused over all parameters."""
     with torch.no_grad():
         torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+class IterateAverage(nn.Module):
+    """The average of a module's iterates: the n-th enters with weight max(weight, 1/n), the running mean until it
+    spans 1/weight updates, then exponential, so the early iterates fade within 1/weight updates instead of the
+    initial weights lingering as they would in a plain Polyak average. The buffers are copied, not averaged. The count
+    is a Python int (saved as the module's extra state), so an update never waits on the device."""
+
+    def __init__(self, source: nn.Module, weight: float):
+        super().__init__()
+        self.module = copy.deepcopy(source).requires_grad_(False)
+        self.weight = weight
+        self.count = 0
+
+    @torch.no_grad()
+    def update(self, source: nn.Module) -> None:
+        self.count += 1
+        torch._foreach_lerp_(list(self.module.parameters()), list(source.parameters()),
+                             max(self.weight, 1.0 / self.count))  # weight 1 at the first: lerp returns the source
+        for mine, theirs in zip(self.module.buffers(), source.buffers()):
+            mine.copy_(theirs)
+
+    def get_extra_state(self) -> torch.Tensor:
+        return torch.tensor(self.count)
+
+    def set_extra_state(self, state: torch.Tensor) -> None:
+        self.count = int(state)
 
 
 class Standardize(nn.Module):

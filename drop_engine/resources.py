@@ -60,7 +60,8 @@ def parameter_counts(cfg: TrainConfig, shape: DataShape) -> dict[str, int]:
         # members x (body + mean and log-variance heads), plus the shared log-variance bounds
         "dynamics": dyn.members * (_linear([obs + act] + [dyn.hidden] * dyn.layers) + 2 * _linear([dyn.hidden, out]))
         + 2 * out,
-        "actor": _linear([obs, *cfg.sac.hidden, 2 * act]),  # mean and log-std heads
+        # mean and log-std heads; twice with the average of its iterates
+        "actor": (1 + (cfg.sac.actor_average < 1)) * _linear([obs, *cfg.sac.hidden, 2 * act]),
         # two critics, each hidden layer with a layer norm's weight and bias if on
         "critic": 2 * (_linear([obs + act, *cfg.sac.hidden, 1]) + cfg.sac.critic_layer_norm * 2 * sum(cfg.sac.hidden)),
         "dice": 0,

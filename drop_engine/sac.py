@@ -7,10 +7,9 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torch.optim.swa_utils import AveragedModel
 
 from .config import SACConfig
-from .nn import EnsembleMLP, Standardize, adam, mlp, soft_update
+from .nn import EnsembleMLP, IterateAverage, Standardize, adam, mlp, soft_update
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 ACTION_EDGE = 1 - 1e-6  # float32: atanh of it is 7.25, of 1 infinite
@@ -42,16 +41,6 @@ class Actor(nn.Module):
         if deterministic:
             return torch.tanh(self(obs)[0])
         return self.sample(obs)[0]
-
-
-def _iterate_average(actor: Actor, weight: float) -> AveragedModel:
-    """Averages the actor's iterates: the n-th enters with weight max(weight, 1/n), a running mean that becomes an
-    exponential one, so the initial random weights fade within 1/weight updates instead of lingering. The buffers
-    (the input standardisation) are copied, not averaged."""
-    def lerp(averaged: list[torch.Tensor], current: list[torch.Tensor], n_averaged: torch.Tensor) -> None:
-        torch._foreach_lerp_(averaged, current, max(weight, 1.0 / (int(n_averaged) + 1)))
-
-    return AveragedModel(actor, multi_avg_fn=lerp).requires_grad_(False)
 
 
 def _squashed_log_prob(u: torch.Tensor, mu: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
@@ -89,7 +78,7 @@ class SAC(nn.Module):
         self.alpha_optim = adam([self.log_alpha], cfg.alpha_lr)
         self.max_reward = math.inf  # the data's largest reward (set_reward_bound), read with value_bound
         self.max_entropy = act_dim * math.log(2.0)  # of the uniform distribution on [-1, 1]^|A|
-        self.actor_average = _iterate_average(self.actor, cfg.actor_average) if cfg.actor_average < 1 else None
+        self.actor_average = IterateAverage(self.actor, cfg.actor_average) if cfg.actor_average < 1 else None
 
     @property
     def policy(self) -> Actor:
@@ -149,7 +138,7 @@ class SAC(nn.Module):
         actor_loss.backward()
         self.actor_optim.step()
         if self.actor_average is not None:
-            self.actor_average.update_parameters(self.actor)
+            self.actor_average.update(self.actor)
 
         alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
         self.alpha_optim.zero_grad(set_to_none=True)

@@ -308,6 +308,8 @@ class Trainer:
         self.metric_sums, self.metric_count = {}, 0
 
     def _evaluate(self, actor: Actor, epoch: int):
+        """`actor`'s deterministic episodes of `epoch`; its time counts to `evaluate`, so with an averaged actor,
+        which is evaluated beside the latest iterate, that phase takes twice as long."""
         dev = self.device
 
         def policy(obs: np.ndarray) -> np.ndarray:
@@ -330,7 +332,8 @@ class Trainer:
                   "return_std": result.std_return, "normalized_score": result.normalized_score}
         if actor is not self.sac.actor:
             live = self._evaluate(self.sac.actor, epoch)
-            record.update(live_return=live.mean_return, live_normalized_score=live.normalized_score)
+            record.update(live_return=live.mean_return, live_return_std=live.std_return,
+                          live_normalized_score=live.normalized_score)
         self.evaluations.append(record)
         if summarize(self._scores()).best_epoch == epoch:
             self.best = BestActor(epoch, result.normalized_score, _cpu_copy(actor.state_dict()))
@@ -448,7 +451,8 @@ class Trainer:
         return [(e["epoch"], e["normalized_score"]) for e in self.evaluations]
 
     def export(self) -> dict[Which, dict[str, str]]:
-        """OUT/policy/last (the actor now) and OUT/policy/best (the best evaluated actor; the last if none was)."""
+        """OUT/policy/last (the policy now: the actor, or the average of its iterates) and OUT/policy/best (the best
+        evaluated policy; the last if none was)."""
         cfg = self.cfg
         policy = self.sac.policy
         last = self._export("last", policy, self.epoch, dict(self._scores()).get(self.epoch), {})

@@ -1,4 +1,4 @@
-"""The table's derived row: a run with only `sac.actor_average` set also yields the plain setting's record."""
+"""The table's bookkeeping: the plain row a run with only `sac.actor_average` set holds, and how records merge."""
 import importlib.util
 from pathlib import Path
 
@@ -8,29 +8,52 @@ spec = importlib.util.spec_from_file_location("paper_table", Path(__file__).pare
 paper_table = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(paper_table)
 
+PLAIN = {"preset": "cpu", "set": [], "revision": 4}
 
-def _record(algorithm="drop"):
-    evaluations = [{"epoch": e, "step": 1000 * e, "return": 10.0 * e, "return_std": 1.0, "normalized_score": s,
-                    "live_return": 20.0 * e, "live_normalized_score": live}
-                   for e, s, live in ((10, 5.0, 9.0), (20, 6.0, 3.0), (30, 7.0, 4.0), (40, 8.0, 2.0))]
-    return {"final": 7.0, "best": 8.0, "best_epoch": 40, "evaluations": evaluations, "algorithm": algorithm,
-            "env": "hopper", "kind": "medium", "seed": 0, "dataset": "abc"}
+
+def _record(algorithm="drop", live=True, dataset="abc", final=7.0):
+    evaluations = [{"epoch": e, "step": 1000 * e, "return": 10.0 * e, "return_std": 1.0, "normalized_score": s}
+                   | ({"live_return": 20.0 * e, "live_return_std": 2.0, "live_normalized_score": x} if live else {})
+                   for e, s, x in ((10, 5.0, 9.0), (20, 6.0, 3.0), (30, 7.0, 4.0), (40, 8.0, 2.0))]
+    return {"final": final, "best": 8.0, "best_epoch": 40, "evaluations": evaluations, "algorithm": algorithm,
+            "env": "hopper", "kind": "medium", "seed": 0, "dataset": dataset}
 
 
 def test_an_averaged_run_holds_the_plain_runs_record():
     plain = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
+    assert plain["evaluations"][0] == {"epoch": 10, "step": 10_000, "return": 200.0, "return_std": 2.0,
+                                       "normalized_score": 9.0}
     assert [e["normalized_score"] for e in plain["evaluations"]] == [9.0, 3.0, 4.0, 2.0]
-    assert [e["return"] for e in plain["evaluations"]] == [200.0, 400.0, 600.0, 800.0]
-    assert not any(k.startswith("live_") for e in plain["evaluations"] for k in e)
     assert (plain["final"], plain["best"], plain["best_epoch"]) == (pytest.approx(3.0), 9.0, 10)
     assert plain["derived_from"] == ["sac.actor_average=0.0001"] and plain["dataset"] == "abc"
 
 
-@pytest.mark.parametrize("algorithm, overrides", [
-    ("drop", ["sac.actor_average=0.0001", "sac.value_bound=true"]),  # another change: not the plain run
-    ("drop", ["sac.value_bound=true"]),
-    ("drop", []),
-    ("bc", ["sac.actor_average=0.0001"]),
+@pytest.mark.parametrize("record, overrides", [
+    (_record(), ["sac.actor_average=0.0001", "sac.value_bound=true"]),  # another change: not the plain run
+    (_record(), ["sac.value_bound=true"]),
+    (_record(), []),
+    (_record(live=False), ["sac.actor_average=1"]),  # no average, so no latest iterate beside it
+    ({**_record(algorithm="bc"), "evaluations": []}, ["sac.actor_average=0.0001"]),
 ])
-def test_no_plain_record_from_other_settings(algorithm, overrides):
-    assert paper_table.latest_iterate(_record(algorithm), overrides) is None
+def test_no_plain_record_from_other_settings(record, overrides):
+    assert paper_table.latest_iterate(record, overrides) is None
+
+
+def test_a_derived_record_never_replaces_a_recorded_run():
+    measured = {**_record(final=1.0), "setting": PLAIN}
+    derived = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
+    assert paper_table.merge([measured], derived, PLAIN) == [measured]
+    # where none is recorded on that file it goes in, and a real run replaces it later
+    other_file = {**_record(dataset="old", final=1.0), "setting": PLAIN}
+    merged = paper_table.merge([other_file], derived, PLAIN)
+    assert merged == [other_file, {**derived, "setting": PLAIN}]
+    rerun = _record(final=5.0)
+    assert paper_table.merge(merged, rerun, PLAIN) == [other_file, {**rerun, "setting": PLAIN}]
+
+
+def test_a_run_replaces_only_its_own_files_record():
+    old = {**_record(dataset="old", final=1.0), "setting": PLAIN}
+    same = {**_record(final=2.0), "setting": PLAIN}
+    ablation = {**_record(final=3.0), "setting": {**PLAIN, "set": ["sac.value_bound=true"]}}
+    new = _record(final=4.0)
+    assert paper_table.merge([old, same, ablation], new, PLAIN) == [old, ablation, {**new, "setting": PLAIN}]

@@ -48,7 +48,8 @@ class _Rows(Callback):
 @pytest.mark.parametrize("overrides", [{"log_every": 3}, {"log_every": 7, "sac.bc_weight": 0.5,
                                                            "dice.steps_per_epoch": 0, "sac.target_entropy": "data",
                                                            "sac.behaviour_fit_steps": 200, "sac.value_bound": True,
-                                                           "sac.critic_layer_norm": True, "dice.average": 0.1}])
+                                                           "sac.critic_layer_norm": True, "dice.average": 0.1,
+                                                           "sac.actor_average": 0.01}])
 def test_counts_match_a_real_run(tmp_path, hopper_dataset, algorithm, overrides):
     """Networks as built and metric rows as reported; patience past max_epochs fixes the dynamics epochs."""
     cfg = build_config(algorithm, env="hopper", preset="smoke", task="medium",
@@ -61,7 +62,7 @@ def test_counts_match_a_real_run(tmp_path, hopper_dataset, algorithm, overrides)
     def size(module) -> int:
         return sum(p.numel() for p in module.parameters()) if module is not None else 0
 
-    built = {"dynamics": size(trainer.model), "actor": size(trainer.sac.actor), "critic": size(trainer.sac.critic),
-             "dice": size(trainer.dice)}
+    built = {"dynamics": size(trainer.model), "actor": size(trainer.sac.actor) + size(trainer.sac.actor_average),
+             "critic": size(trainer.sac.critic), "dice": size(trainer.dice)}
     assert parameter_counts(cfg, shape) == built
     assert estimate(cfg, shape).metric_rows == rows.rows

@@ -249,7 +249,7 @@ def test_averaged_actor_is_the_running_mean_then_an_exponential_one():
     assert plain.policy is plain.actor and plain.actor_average is None
     torch.manual_seed(0)
     sac = SAC(3, 2, SACConfig(hidden=(16, 16), actor_average=0.25))
-    sac.set_obs_normalizer(np.full(3, 2.0), np.full(3, 3.0))
+    sac.actor.norm.set(np.full(3, 2.0), np.full(3, 3.0))  # the live actor's alone: the update copies it
     gen = torch.Generator().manual_seed(1)
     expected = None
     for n in range(1, 8):

@@ -125,7 +125,8 @@ def test_an_averaged_actor_changes_what_is_evaluated_and_exported_not_the_traini
     evaluations, recorded as `live_*`, are the plain run's; the scores and both exported policies are the average's."""
     plain = Trainer(hopper_dataset, _config("mopo", epochs=3), tmp_path / "plain")
     plain_result = plain.run()  # before the next Trainer: each seeds the process's RNGs
-    averaged = Trainer(hopper_dataset, _config("mopo", epochs=3, sac={"actor_average": 0.02}), tmp_path / "averaged")
+    averaged = Trainer(hopper_dataset, _config("mopo", epochs=3, keep_checkpoints=10, sac={"actor_average": 0.02}),
+                       tmp_path / "averaged")
     result = averaged.run()
 
     assert [e["live_normalized_score"] for e in result.evaluations] == [
@@ -134,6 +135,9 @@ def test_an_averaged_actor_changes_what_is_evaluated_and_exported_not_the_traini
     for a, b in zip(averaged.sac.actor.parameters(), plain.sac.actor.parameters()):
         assert torch.equal(a, b)
     assert all("live_normalized_score" not in e for e in plain_result.evaluations)
+    assert [e["normalized_score"] for e in result.evaluations] != [
+        e["normalized_score"] for e in plain_result.evaluations]
+    assert [e["live_return_std"] for e in result.evaluations] == [e["return_std"] for e in plain_result.evaluations]
     obs = torch.as_tensor(hopper_dataset.observations[:64])
     with torch.no_grad():
         expected = averaged.sac.policy.act(obs, deterministic=True)
@@ -141,16 +145,20 @@ def test_an_averaged_actor_changes_what_is_evaluated_and_exported_not_the_traini
     exported = torch.as_tensor(load_policy(result.policy["last"]["torchscript"])(obs.numpy()))
     torch.testing.assert_close(exported, expected, atol=1e-6, rtol=0)
     assert not torch.allclose(exported, live, atol=1e-3)
+    # The best policy is the average as its epoch's checkpoint recorded it.
     best = torch.load(result.policy["best"]["state_dict"])
-    assert best.keys() == averaged.sac.actor.state_dict().keys()
+    checkpoint = tmp_path / "averaged" / "checkpoints" / checkpoint_name(result.best_epoch, 0)
+    state = torch.load(checkpoint, weights_only=False)
+    recorded = {k.removeprefix("actor_average.module."): v for k, v in state["sac"].items()
+                if k.startswith("actor_average.module.")}
+    assert best.keys() == recorded.keys() and all(torch.equal(best[k], v) for k, v in recorded.items())
 
 
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory, hopper_dataset) -> tuple[Trainer, Recorder]:
     whole = Recorder()
-    # An averaged DICE estimator too: its average is state a resumed run must restore, or its penalties differ; and
-    # the annealed actor rate, which a resumed run must set as the uninterrupted one did.
-    # An averaged actor as well, whose average and its count a resumed run must restore.
+    # Averaged DICE estimator and actor too: their averages (and the actor's count) are state a resumed run must
+    # restore, or its penalties and scores differ; and the annealed actor rate, which it must set as this run did.
     cfg = _config("drop", epochs=3, dice={"average": 0.5}, sac={"actor_lr_schedule": "cosine", "actor_average": 0.1})
     trainer = Trainer(hopper_dataset, cfg, tmp_path_factory.mktemp("whole"), whole)
     trainer.run()
