@@ -10,6 +10,7 @@ from typing import get_args
 import click
 
 from .atomic import write_text
+from .collect_config import KINDS, CollectConfig, OnlineConfig
 from .config import PRESETS, Algorithm, build_config, parse_override
 from .envs import DEFAULT_VERSION, VERSIONS
 from .errors import ConfigError
@@ -209,24 +210,25 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--steps", type=int, default=None,
               help="online SAC env steps, one update each (default: 200,000; measured times in the README)")
-@click.option("--transitions", type=int, default=None, help="rows recorded per behaviour policy (random, medium, "
-              "expert; medium-expert holds twice this; default 200,000)")
+@click.option("--transitions", type=int, default=CollectConfig.transitions, show_default=True,
+              help="rows recorded per behaviour policy (random, medium, expert; medium-expert holds twice this)")
 @click.option("--kinds", default=None,
-              help="comma-separated subset of random,medium,medium-replay,expert,medium-expert (default all); "
+              help=f"comma-separated subset of {','.join(KINDS)} (default all); "
                    "random alone needs no online training")
-@click.option("--warmup", type=int, default=5000, show_default=True,
+@click.option("--warmup", type=int, default=OnlineConfig.warmup, show_default=True,
               help="uniform-random steps before SAC updates start")
-@click.option("--eval-every", type=int, default=5000, show_default=True,
+@click.option("--eval-every", type=int, default=OnlineConfig.eval_every, show_default=True,
               help="env steps between evaluations and checkpoints")
-@click.option("--eval-episodes", type=int, default=10, show_default=True)
+@click.option("--eval-episodes", type=int, default=OnlineConfig.eval_episodes, show_default=True)
 @click.option("--medium-return", type=float, default=None, help="medium threshold (default: expert return / 3)")
 @click.option("--env-version", default=DEFAULT_VERSION, show_default=True, type=ENV_VERSIONS)
-@click.option("--num-envs", type=int, default=8, show_default=True, help="envs stepped side by side while recording")
+@click.option("--num-envs", type=int, default=CollectConfig.num_envs, show_default=True,
+              help="envs stepped side by side while recording")
 @click.option("--threads", type=click.IntRange(min=1), default=1, show_default=True,
               help="torch intra-op threads; part of what makes the files: the same seed at another thread count sums "
                    "in another order and, over 100,000s of online steps, makes other datasets (bench/QUALITY.md E22)")
 @click.option("--no-progress", is_flag=True, help="no progress bars")
-def collect(env: str, out: str, seed: int, steps: int | None, transitions: int | None, kinds: str | None,
+def collect(env: str, out: str, seed: int, steps: int | None, transitions: int, kinds: str | None,
             warmup: int, eval_every: int, eval_episodes: int, medium_return: float | None, env_version: str,
             num_envs: int, threads: int, no_progress: bool) -> int:
     """Make D4RL-style datasets by training SAC online in the real env. SIGINT or SIGTERM stop it at a step boundary
@@ -236,8 +238,7 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int |
 
     import torch
 
-    from .collect import DEFAULT_TRANSITIONS, KINDS, CollectConfig, collect_datasets, summary_table
-    from .online import OnlineConfig
+    from .collect import collect_datasets, summary_table
 
     torch.set_num_threads(threads)
     chosen = tuple(kinds.split(",")) if kinds else KINDS
@@ -259,7 +260,7 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int |
     previous = {sig: signal.signal(sig, ask_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     started = time.time()
     try:
-        config = CollectConfig(online, transitions or DEFAULT_TRANSITIONS, num_envs)
+        config = CollectConfig(online, transitions, num_envs)
         rows = collect_datasets(config, out, chosen, not no_progress, should_stop=lambda: stop["asked"])
     except ValueError as exc:
         print(f"drop collect: {exc}", file=sys.stderr)

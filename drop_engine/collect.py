@@ -11,22 +11,19 @@ from __future__ import annotations
 
 import importlib.metadata
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
+from .collect_config import KINDS, CollectConfig
 from .data import from_arrays, save_hdf5
 from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
-from .online import OnlineConfig, OnlineSAC, actor_fn
+from .online import OnlineSAC, actor_fn
 from .stopping import Stopped, check
 
 BehaviourPolicy = Callable[[np.ndarray], np.ndarray]
-KINDS = ("random", "medium", "medium-replay", "expert", "medium-expert")
-# Recording ~0.3 ms a transition on one core: 3 x 200k recorded rows take a few minutes after training.
-DEFAULT_TRANSITIONS = 200_000
 KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts", "infos/qpos", "infos/qvel")
 
 
@@ -114,18 +111,6 @@ def read_arrays(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         arrays = {k: handle[k][()] for k in KEYS}
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in handle.attrs.items()}
     return arrays, attrs
-
-
-@dataclass
-class CollectConfig:
-    """What `drop collect` makes: an online SAC run (`online`) and `transitions` recorded rows per policy kind."""
-
-    online: OnlineConfig
-    transitions: int = DEFAULT_TRANSITIONS
-    num_envs: int = 8
-
-    def dataset_path(self, out: Path, kind: str) -> Path:
-        return out / f"{self.online.env}-{kind}.hdf5"
 
 
 def _attrs(cfg: CollectConfig, kind: str, arrays: dict[str, np.ndarray], behaviour: list) -> dict:

@@ -8,11 +8,12 @@ import torch
 
 import drop_engine.collect
 from drop_engine.cli import main
-from drop_engine.collect import KINDS, CollectConfig, collect_datasets, collect_transitions, random_policy, read_arrays
+from drop_engine.collect import collect_datasets, collect_transitions, random_policy, read_arrays
+from drop_engine.collect_config import KINDS, CollectConfig, OnlineConfig
 from drop_engine.config import SACConfig
 from drop_engine.data import describe, load_dataset
 from drop_engine.envs import get_env, make_env
-from drop_engine.online import OnlineConfig, OnlineSAC
+from drop_engine.online import OnlineSAC
 from drop_engine.stopping import Stopped
 
 SMALL = SACConfig(hidden=(64, 64), batch_size=64)
