@@ -23,12 +23,32 @@ import logging
 from typing import Any, Sequence
 
 import orjson
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import URL, Engine
 from sqlalchemy.sql import Executable
 
 log = logging.getLogger("drop.api")
 POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (TimeoutError, a 500), not queueing on
 BATCH_MAX = 100  # keys in one batched read
+# libpq's connection keywords (PostgreSQL 17's list) that asyncpg's DSN does not read. asyncpg sends any query option
+# it does not know to the server as a run-time setting, and the server then refuses the connection ("unrecognized
+# configuration parameter"): a database URL that psycopg, the ORM's driver, accepts would stop the API at startup.
+# They shape psycopg's client side; the hot reads' connections go without them, connect_timeout as asyncpg's timeout.
+LIBPQ_ONLY = frozenset({
+    "hostaddr", "require_auth", "channel_binding", "connect_timeout", "fallback_application_name", "keepalives",
+    "keepalives_idle", "keepalives_interval", "keepalives_count", "tcp_user_timeout", "replication", "gssencmode",
+    "requiressl", "sslcompression", "sslcertmode", "sslcrldir", "sslsni", "requirepeer", "gssdelegation",
+    "load_balance_hosts",
+})
+
+
+def asyncpg_connect_args(url: URL) -> tuple[str, dict[str, Any]]:
+    """The DSN and keyword arguments of `asyncpg.connect` for the database at SQLAlchemy `url`."""
+    query = dict(url.query)
+    timeout = query.get("connect_timeout")
+    dsn = url.set(drivername="postgresql", query={k: v for k, v in query.items() if k not in LIBPQ_ONLY})
+    # libpq: 0 or nothing waits for ever; asyncpg needs a number (its default, 60 s, stands for both)
+    return dsn.render_as_string(hide_password=False), ({"timeout": float(timeout)} if timeout and float(timeout) > 0
+                                                        else {})
 
 
 class _Batch:
@@ -66,10 +86,10 @@ class _Connections:
     A connection the server closed (a restart, a terminated backend) is made again when its slot is next taken. Taking
     an idle one never leaves the event loop's turn."""
 
-    def __init__(self, dsn: str, size: int):
+    def __init__(self, url: URL, size: int):
         import asyncpg
 
-        self.dsn, self.size, self.closed = dsn, size, False
+        (self.dsn, self.connect_kwargs), self.size, self.closed = asyncpg_connect_args(url), size, False
         self._connect_fn, self._row = asyncpg.connect, _row_class()
         self._slots: asyncio.LifoQueue = asyncio.LifoQueue()
 
@@ -83,7 +103,7 @@ class _Connections:
             self._slots.put_nowait(conn)
 
     async def _connect(self):
-        conn = await self._connect_fn(self.dsn, record_class=self._row)
+        conn = await self._connect_fn(self.dsn, record_class=self._row, **self.connect_kwargs)
         try:
             await _setup(conn)
         except BaseException:
@@ -149,10 +169,9 @@ class FastReads:
                       asyncpg.exceptions.AdminShutdownError, asyncpg.exceptions.CrashShutdownError,
                       asyncpg.InterfaceError, ConnectionError)
         self._loop = asyncio.get_running_loop()
-        dsn = self.engine.url.set(drivername="postgresql").render_as_string(hide_password=False)
         # Every connection opened now: a pool that grows on demand makes the read that finds all connections busy
         # wait for a new one's connect and set-up, tens of milliseconds on a loaded machine.
-        pool = _Connections(dsn, self.size)
+        pool = _Connections(self.engine.url, self.size)
         await pool.open()
         self._pool = pool
 

@@ -16,7 +16,7 @@ from app.core.fast_json import FastJSONResponse
 from app.core.problems import Problem
 from app.jobs import reads, schemas
 from kernel import fast_reads
-from kernel.db import make_sessionmaker
+from kernel.db import make_engine, make_sessionmaker
 from kernel.fast_reads import FastReads
 from kernel.ids import new_id
 from kernel.job_state import JobStatus
@@ -211,6 +211,27 @@ def test_a_read_survives_the_server_dropping_its_connections(db):
 
     first, again = asyncio.run(run(body)(engine))
     assert [received(a) for a in again] == [received(first)] * 2
+
+
+def test_a_database_url_with_libpq_options_opens_the_pool(db):
+    """Options of the URL that psycopg reads and asyncpg does not (connect_timeout, keepalives) stay off the hot reads'
+    connections, where the server would refuse them as unknown settings and the API would not start; a server setting
+    in the URL (application_name) still reaches the server."""
+    engine, _, ids = db
+    if engine.dialect.name != "postgresql":
+        pytest.skip("a PostgreSQL connection pool")
+    url = engine.url.update_query_dict({"connect_timeout": "5", "keepalives": "1", "application_name": "drop_fast"})
+    with_options = make_engine(url.render_as_string(hide_password=False))
+    try:
+        async def body(fast):
+            name = await fast.all(select(func.current_setting(bindparam("name"))), name="application_name")
+            return name, await reads.job(fast, OWNER, ids[0])
+
+        name, job = asyncio.run(run(body)(with_options))
+    finally:
+        with_options.dispose()
+    assert [tuple(row) for row in name] == [("drop_fast",)] and job["id"] == ids[0]
+    assert fast_reads.asyncpg_connect_args(url)[1] == {"timeout": 5.0}
 
 
 def test_a_read_that_finds_no_free_connection_times_out_and_keeps_the_pool(db, monkeypatch, caplog):
