@@ -1,4 +1,5 @@
-"""The table's bookkeeping: the plain row a run with only `sac.actor_average` set holds, and how records merge."""
+"""The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, and how records
+merge."""
 import importlib.util
 from pathlib import Path
 
@@ -20,7 +21,8 @@ def _record(algorithm="drop", live=True, dataset="abc", final=7.0):
 
 
 def test_an_averaged_run_holds_the_plain_runs_record():
-    plain = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
+    plain, rest = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
+    assert rest == []
     assert plain["evaluations"][0] == {"epoch": 10, "step": 10_000, "return": 200.0, "return_std": 2.0,
                                        "normalized_score": 9.0}
     assert [e["normalized_score"] for e in plain["evaluations"]] == [9.0, 3.0, 4.0, 2.0]
@@ -28,8 +30,13 @@ def test_an_averaged_run_holds_the_plain_runs_record():
     assert plain["derived_from"] == ["sac.actor_average=0.0001"] and plain["dataset"] == "abc"
 
 
+def test_an_averaged_ablation_holds_the_ablations_record():
+    derived, rest = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001", "sac.value_bound=true"])
+    assert rest == ["sac.value_bound=true"] and [e["normalized_score"] for e in derived["evaluations"]] == [9, 3, 4, 2]
+    assert derived["derived_from"] == ["sac.actor_average=0.0001", "sac.value_bound=true"]
+
+
 @pytest.mark.parametrize("record, overrides", [
-    (_record(), ["sac.actor_average=0.0001", "sac.value_bound=true"]),  # another change: not the plain run
     (_record(), ["sac.value_bound=true"]),
     (_record(), []),
     (_record(live=False), ["sac.actor_average=1"]),  # no average, so no latest iterate beside it
@@ -41,7 +48,7 @@ def test_no_plain_record_from_other_settings(record, overrides):
 
 def test_a_derived_record_never_replaces_a_recorded_run():
     measured = {**_record(final=1.0), "setting": PLAIN}
-    derived = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
+    derived, _ = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
     assert paper_table.merge([measured], derived, PLAIN) == [measured]
     # where none is recorded on that file it goes in, and a real run replaces it later
     other_file = {**_record(dataset="old", final=1.0), "setting": PLAIN}
