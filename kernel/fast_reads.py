@@ -44,11 +44,9 @@ LIBPQ_ONLY = frozenset({
 def asyncpg_connect_args(url: URL) -> tuple[str, dict[str, Any]]:
     """The DSN and keyword arguments of `asyncpg.connect` for the database at SQLAlchemy `url`."""
     query = dict(url.query)
-    timeout = query.get("connect_timeout")
     dsn = url.set(drivername="postgresql", query={k: v for k, v in query.items() if k not in LIBPQ_ONLY})
-    # libpq: 0 or nothing waits for ever; asyncpg needs a number (its default, 60 s, stands for both)
-    return dsn.render_as_string(hide_password=False), ({"timeout": float(timeout)} if timeout and float(timeout) > 0
-                                                        else {})
+    timeout = float(query.get("connect_timeout") or 0)  # libpq: 0 or none waits for ever; asyncpg's default is 60 s
+    return dsn.render_as_string(hide_password=False), ({"timeout": timeout} if timeout > 0 else {})
 
 
 class _Batch:
