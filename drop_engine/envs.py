@@ -4,6 +4,7 @@ No torch here: the API imports this to check job specs, and importing torch woul
 """
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, get_args
@@ -71,10 +72,26 @@ def envs_matching(obs_dim: int, act_dim: int) -> list[str]:
     return [spec.name for spec in ENVS.values() if (spec.obs_dim, spec.act_dim) == (obs_dim, act_dim)]
 
 
+log = logging.getLogger("drop.mujoco")
+_MAX_WARNINGS = 64  # distinct texts logged per process; MuJoCo's can carry a time, so the set must not grow forever
+_warned: set[str] = set()
+
+
+def _log_mujoco_warning(message: str) -> None:
+    """MuJoCo's default handler prints each warning and appends it to MUJOCO_LOG.TXT in the working directory: with
+    gymnasium's half_cheetah.xml (a deprecated `settotalmass` in MuJoCo 4) that is a line per env made, ten per
+    evaluation, in a file no one rotates. Log each text once instead."""
+    if message not in _warned and len(_warned) < _MAX_WARNINGS:
+        _warned.add(message)
+        log.warning("mujoco: %s", message)
+
+
 def make_env(name: str, version: str = DEFAULT_VERSION):
     """A real gymnasium MuJoCo env for `name`."""
     import gymnasium as gym
+    import mujoco
 
+    mujoco.set_mju_user_warning(_log_mujoco_warning)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return gym.make(get_env(name).gym_id(version))

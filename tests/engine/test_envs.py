@@ -1,12 +1,14 @@
 """Termination functions must agree with the real gymnasium envs; scores follow D4RL's normalisation."""
+import logging
 from typing import get_args
 
 import numpy as np
 import pytest
 import torch
 
+from drop_engine import envs
 from drop_engine.collect import collect_transitions, random_policy
-from drop_engine.envs import ENVS, EnvName, get_env
+from drop_engine.envs import ENVS, EnvName, get_env, make_env
 
 
 @pytest.mark.parametrize("env", ["hopper", "walker2d", "halfcheetah"])
@@ -63,3 +65,16 @@ def test_true_step_reproduces_recorded_transitions(env):
 def test_every_env_name_has_its_spec():
     """The API offers exactly the names of `EnvName` (its schema's enum): each must be a known env."""
     assert sorted(ENVS) == sorted(get_args(EnvName)) and all(name == spec.name for name, spec in ENVS.items())
+
+
+def test_mujoco_warnings_are_logged_once_and_write_no_file(tmp_path, monkeypatch, caplog):
+    """gymnasium's half_cheetah.xml trips a MuJoCo deprecation warning on every compile; by default MuJoCo appends it
+    to MUJOCO_LOG.TXT in the working directory, a file that grows with every evaluation a worker runs."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(envs, "_warned", set())
+    with caplog.at_level(logging.WARNING, logger="drop.mujoco"):
+        for _ in range(3):
+            make_env("halfcheetah").close()
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    texts = [r.getMessage() for r in caplog.records if r.name == "drop.mujoco"]
+    assert len(texts) == 1 and "settotalmass" in texts[0]
