@@ -113,8 +113,7 @@ def bench_threads(data: Dataset, threads: int, device: torch.device, work: Path)
     # Dynamics: one epoch over 100k transitions (the bootstrap resample is the same size as the training split).
     rng = np.random.default_rng(0)
     idx = rng.integers(0, len(data), 100_000)
-    sub = Dataset(data.observations[idx], data.actions[idx], data.rewards[idx], data.next_observations[idx],
-                  data.terminals[idx], data.timeouts[idx])
+    sub = data.take(idx)
     dyn_cfg = cfg.dynamics.model_copy(update={"max_epochs": 1})
     model = GaussianEnsemble(data.obs_dim, data.act_dim, dyn_cfg).to(device)
     start = time.perf_counter()

@@ -68,8 +68,7 @@ def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: Sto
     (bench/QUALITY.md E28 measures it against the behaviour policies the bench files were recorded with). The fit draws
     from a forked CPU RNG stream, so a run that asks for it draws the same numbers after it as one that does not."""
     inside = _inside(data)
-    fit_on = data if len(inside) == len(data) else Dataset(*(getattr(data, k)[inside] for k in (
-        "observations", "actions", "rewards", "next_observations", "terminals", "timeouts")))
+    fit_on = data if len(inside) == len(data) else data.take(inside)
     with torch.random.fork_rng(devices=[]):
         actor = train_bc(fit_on, steps, seed=seed, should_stop=should_stop, on_step=on_step)
     rows = entropy_rows(data, seed=seed)

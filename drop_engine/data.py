@@ -16,25 +16,23 @@ from typing import Mapping
 import numpy as np
 
 from .atomic import atomic_path
-from .data_rows import BLOCK_BYTES, Block, DatasetLimits, Layout, Rows, check_rows, layout, require_rows
+from .data_rows import BLOCK_BYTES, DatasetLimits, Layout, Rows, Transitions, check_rows, layout, require_rows
 from .envs import EnvVersion, envs_matching, get_env, gym_version
 from .errors import DatasetError
 from .formats import open_arrays
 
 
 @dataclass
-class Dataset:
-    observations: np.ndarray
-    actions: np.ndarray
-    rewards: np.ndarray
-    next_observations: np.ndarray
-    terminals: np.ndarray
-    timeouts: np.ndarray
+class Dataset(Transitions):
     attrs: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.observations)
+
+    def take(self, rows: np.ndarray) -> Dataset:
+        """The transitions at `rows` (indices or a mask), with this dataset's attrs."""
+        return Dataset(**{name: array[rows] for name, array in self.arrays().items()}, attrs=self.attrs)
 
     @property
     def obs_dim(self) -> int:
@@ -95,7 +93,7 @@ class _Tally:
     max_abs_action: float = 0.0
     dropped: int = 0
 
-    def add(self, rows: Block | Dataset, dropped: int = 0) -> None:
+    def add(self, rows: Transitions, dropped: int = 0) -> None:
         self.dropped += dropped
         if not len(rows.rewards):
             return
@@ -177,8 +175,7 @@ def from_arrays(arrays: Mapping[str, Rows], attrs: dict | None = None, env: str 
             )
     tally = _Tally()
     tally.add(block, block.dropped)
-    return Dataset(block.observations, block.actions, block.rewards, block.next_observations, block.terminals,
-                   block.timeouts, dict(attrs or {}), tally.warnings(lay))
+    return Dataset(**block.arrays(), attrs=dict(attrs or {}), warnings=tally.warnings(lay))
 
 
 def load_dataset(path: str | Path, env: str | None = None) -> Dataset:

@@ -7,7 +7,7 @@ Arrays are anything with `shape`, `dtype` and row slicing: numpy arrays, h5py da
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Mapping, Protocol
 
 import numpy as np
@@ -82,8 +82,8 @@ class Layout:
 
 
 @dataclass
-class Block:
-    """Rows checked and converted as the trainer uses them (float32 arrays, boolean flags)."""
+class Transitions:
+    """Rows as the trainer uses them (float32 arrays, boolean flags), one per transition."""
 
     observations: np.ndarray
     actions: np.ndarray
@@ -91,6 +91,15 @@ class Block:
     next_observations: np.ndarray
     terminals: np.ndarray
     timeouts: np.ndarray
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in fields(Transitions)}
+
+
+@dataclass
+class Block(Transitions):
+    """Rows checked and converted a block at a time."""
+
     dropped: int = 0  # rows without a successor in the file, dropped while rebuilding next observations
 
 
