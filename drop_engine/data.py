@@ -32,7 +32,7 @@ class Dataset(Transitions):
 
     def take(self, rows: np.ndarray) -> Dataset:
         """The transitions at `rows` (indices or a mask), with this dataset's attrs."""
-        return Dataset(**{name: array[rows] for name, array in self.arrays().items()}, attrs=self.attrs)
+        return Dataset(**{name: array[rows] for name, array in self.arrays().items()}, attrs=dict(self.attrs))
 
     @property
     def obs_dim(self) -> int:
