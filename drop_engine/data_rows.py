@@ -93,6 +93,7 @@ class Transitions:
     timeouts: np.ndarray
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The six arrays by name; a subclass's own fields (attrs, dropped) are not rows, so they are left out."""
         return {f.name: getattr(self, f.name) for f in fields(Transitions)}
 
 
