@@ -47,10 +47,20 @@ def train_bc(data: Dataset, steps: int = 100_000, batch_size: int = 256, lr: flo
     return actor
 
 
+# Fewer rows inside the bounds, as in a bang-bang policy's data, and a fit of the behaviour's spread reads almost
+# nothing: the data then says nothing about how narrow its policy is.
+MIN_FIT_ROWS = 1_000
+
+
 def _inside(data: Dataset) -> np.ndarray:
     """Rows whose actions are all inside the tanh bounds. A tanh-Gaussian has no density on a bound: an action clipped
     there is read at the bound's edge, where each such dimension adds about -13 nats and pulls a fit's spread out."""
     return np.flatnonzero(np.abs(data.actions).max(1) < ACTION_EDGE)
+
+
+def estimable(data: Dataset) -> bool:
+    """Whether enough rows are inside the bounds (`MIN_FIT_ROWS`) for `behaviour_entropy`."""
+    return len(_inside(data)) >= MIN_FIT_ROWS
 
 
 def entropy_rows(data: Dataset, samples: int = 10_000, seed: int = 0) -> np.ndarray:
@@ -66,8 +76,11 @@ def behaviour_entropy(data: Dataset, steps: int, seed: int = 0, should_stop: Sto
 
     Where the data came from one stochastic policy this is its entropy plus the fit's KL to it, so it errs high
     (bench/QUALITY.md E28 measures it against the behaviour policies the bench files were recorded with). The fit draws
-    from a forked CPU RNG stream, so a run that asks for it draws the same numbers after it as one that does not."""
+    from a forked CPU RNG stream, so a run that asks for it draws the same numbers after it as one that does not.
+    Only for `estimable` data."""
     inside = _inside(data)
+    if len(inside) < MIN_FIT_ROWS:
+        raise ValueError(f"{len(inside)} rows have every action inside the bounds; an estimate needs {MIN_FIT_ROWS}")
     fit_on = data if len(inside) == len(data) else data.take(inside)
     with torch.random.fork_rng(devices=[]):
         actor = train_bc(fit_on, steps, seed=seed, should_stop=should_stop, on_step=on_step)

@@ -77,7 +77,9 @@ class SACConfig(_Strict):
         None, description="the entropy the temperature holds the policy at; default -|A|. 'data': the lower of -|A| "
                           "and the data's behaviour entropy, estimated before training by a maximum-likelihood fit "
                           "(`behaviour_fit_steps`): a policy broader than the data samples actions the data does not "
-                          "have, and the density ratio on the data is then small (bench/QUALITY.md E28)")
+                          "have, and the density ratio on the data is then small (bench/QUALITY.md E28); -|A| where "
+                          "too few rows have every action inside the bounds (`bc.MIN_FIT_ROWS`), as in a bang-bang "
+                          "policy's data")
     behaviour_fit_steps: int = Field(5_000, ge=1, le=100_000, description="steps of the fit that estimates the "
                                      "data's behaviour entropy, with target_entropy='data'")
     bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .bc import behaviour_entropy
+from .bc import behaviour_entropy, estimable
 from .callbacks import Callback
 from .checkpoint import load_latest, save_checkpoint
 from .config import TrainConfig
@@ -226,8 +226,9 @@ class Trainer:
     def fit_target_entropy(self) -> bool:
         """With target_entropy 'data', estimate the data's behaviour entropy (once: it is checkpointed) and hold the
         policy at no more than it; False if the caller stopped the fit (nothing of it is kept then). Only at the run's
-        start: a run that trained past it at another target would change target part-way."""
-        if self.cfg.sac.target_entropy != "data" or self.behaviour_entropy is not None:
+        start: a run that trained past it at another target would change target part-way. Data with too few actions
+        inside the bounds to estimate it (`estimable`) keeps the default target, -|A|."""
+        if self.cfg.sac.target_entropy != "data" or self.behaviour_entropy is not None or not estimable(self.data):
             return True
         if self.global_step > 0:
             raise ConfigError(f"this run trained {self.global_step} steps without sac.target_entropy='data'; resume it "

@@ -366,6 +366,25 @@ def test_a_resume_follows_its_own_target_setting(tmp_path, hopper_dataset):
         Trainer(hopper_dataset, data_cfg, tmp_path / "b").run()
 
 
+def test_data_with_every_action_on_a_bound_keeps_the_default_target(tmp_path, hopper_dataset):
+    """A bang-bang policy's data (one action dimension always at -1 or 1) gives a tanh-Gaussian no density to fit, so
+    target_entropy='data' keeps -|A| and the run trains; a resume after a stop does not take the missing estimate for
+    a run that trained at another target."""
+    from drop_engine.data import Dataset
+
+    d = hopper_dataset
+    bang = d.actions.copy()
+    bang[:, 0] = np.where(d.observations[:, 0] > np.median(d.observations[:, 0]), 1.0, -1.0)
+    data = Dataset(d.observations, bang, d.rewards, d.next_observations, d.terminals, d.timeouts)
+    cfg = _config("mopo", epochs=2, sac={"target_entropy": "data", "behaviour_fit_steps": 200})
+    stop = Recorder(stop_in=Trainer._sac_steps, after=5)
+    first = Trainer(data, cfg, tmp_path, stop)
+    assert first.run().status == "stopped"
+    assert first.behaviour_entropy is None and first.sac.target_entropy == -3.0
+    assert "behaviour_fit" not in stop.phases
+    assert Trainer(data, cfg, tmp_path, Recorder()).run().status == "completed"
+
+
 def test_value_bound_reads_the_datas_largest_reward(tmp_path, hopper_dataset):
     """The ceiling on the critics' target is set from the data the run trains on, and its clipped share reported."""
     recorder = Recorder()
