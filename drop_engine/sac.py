@@ -120,7 +120,7 @@ class SAC(nn.Module):
             q_next = self.critic_target(next_obs, next_act).min(0).values
             if cfg.value_bound:  # the bootstrapped value only: the entropy sample and the reward stay as drawn
                 ceiling = self.value_ceiling(alpha)
-                clipped = (q_next > ceiling).float().mean()
+                clipped = ((q_next > ceiling) & (done < 1)).float().mean()  # a terminal row bootstraps nothing
                 q_next = q_next.clamp_max(ceiling)
             target = rew + cfg.gamma * (1.0 - done) * (q_next - alpha * next_logp)
         q = self.critic(obs, act)

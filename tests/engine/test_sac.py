@@ -200,7 +200,8 @@ def test_cosine_schedule_takes_only_the_actor_lr_to_zero():
         assert rates["cosine", progress] == pytest.approx([actor, 3e-4, 3e-4], rel=1e-3)
 
 
-def _one_update(value_bound: bool, runaway: bool) -> tuple[SAC, dict]:
+def _one_update(value_bound: bool, runaway: bool, terminal: int = 0) -> tuple[SAC, dict]:
+    """One update on 64 random rows, the first `terminal` of them terminal."""
     torch.manual_seed(0)
     sac = SAC(3, 2, SACConfig(hidden=(16, 16), value_bound=value_bound))
     sac.set_reward_bound(1.0)
@@ -211,18 +212,20 @@ def _one_update(value_bound: bool, runaway: bool) -> tuple[SAC, dict]:
     gen = torch.Generator().manual_seed(1)
     obs, next_obs = torch.randn(n, 3, generator=gen), torch.randn(n, 3, generator=gen)
     act = torch.rand(n, 2, generator=gen) * 2 - 1
-    return sac, sac.update(obs, act, torch.zeros(n), next_obs, torch.zeros(n))
+    return sac, sac.update(obs, act, torch.zeros(n), next_obs, (torch.arange(n) < terminal).float())
 
 
 def test_value_bound_clips_only_a_runaway_bootstrap():
     """A target critic whose values ran away (1e4) teaches the critics those values unless the bound caps the
     bootstrapped Q at the largest soft Q rewards of at most 1 allow, (1 + gamma alpha |A| log 2) / (1 - gamma), 237.2
-    at alpha 1; a target critic within the bound is left exactly as it is."""
+    at alpha 1; a target critic within the bound is left exactly as it is. Terminal rows bootstrap nothing, so the
+    clipped share leaves them out."""
     ceiling = (1.0 + 0.99 * 2 * np.log(2.0)) / (1 - 0.99)
     sac, bounded = _one_update(True, runaway=True)
     assert float(sac.value_ceiling(torch.tensor(1.0))) == pytest.approx(ceiling)
     assert float(bounded["sac/target_clipped"]) == 1.0
     assert float(bounded["sac/critic_loss"]) < 2 * (ceiling + 10) ** 2
+    assert float(_one_update(True, runaway=True, terminal=16)[1]["sac/target_clipped"]) == 0.75
     _, plain = _one_update(False, runaway=True)
     assert "sac/target_clipped" not in plain and float(plain["sac/critic_loss"]) > 1e7
 
