@@ -45,7 +45,13 @@ def asyncpg_connect_args(url: URL) -> tuple[str, dict[str, Any]]:
     """The DSN and keyword arguments of `asyncpg.connect` for the database at SQLAlchemy `url`."""
     query = dict(url.query)
     dsn = url.set(drivername="postgresql", query={k: v for k, v in query.items() if k not in LIBPQ_ONLY})
-    timeout = float(query.get("connect_timeout") or 0)  # libpq: 0 or none waits for ever; asyncpg's default is 60 s
+    given = query.get("connect_timeout") or 0
+    if isinstance(given, tuple):  # named twice: libpq takes the last
+        given = given[-1]
+    try:
+        timeout = float(given)  # libpq: 0 or none waits for ever; asyncpg's default is 60 s
+    except ValueError:
+        raise ValueError(f"connect_timeout in the database URL must be seconds, not {given!r}") from None
     return dsn.render_as_string(hide_password=False), ({"timeout": timeout} if timeout > 0 else {})
 
 

@@ -11,6 +11,7 @@ import orjson
 import psycopg
 import pytest
 from sqlalchemy import bindparam, func, select
+from sqlalchemy.engine import make_url
 
 from app.core.fast_json import FastJSONResponse
 from app.core.problems import Problem
@@ -232,6 +233,14 @@ def test_a_database_url_with_libpq_options_opens_the_pool(db):
         with_options.dispose()
     assert [tuple(row) for row in name] == [("drop_fast",)] and job["id"] == ids[0]
     assert fast_reads.asyncpg_connect_args(url)[1] == {"timeout": 5.0}
+
+
+def test_connect_timeout_named_twice_or_malformed():
+    """libpq takes the last of a repeated keyword; a timeout that is not a number is refused by name."""
+    twice = make_url("postgresql+psycopg://u@h/db?connect_timeout=5&connect_timeout=7")
+    assert fast_reads.asyncpg_connect_args(twice)[1] == {"timeout": 7.0}
+    with pytest.raises(ValueError, match="connect_timeout .* not 'soon'"):
+        fast_reads.asyncpg_connect_args(make_url("postgresql+psycopg://u@h/db?connect_timeout=soon"))
 
 
 def test_a_read_that_finds_no_free_connection_times_out_and_keeps_the_pool(db, monkeypatch, caplog):
