@@ -50,7 +50,8 @@ def test_a_derived_record_never_replaces_a_recorded_run():
     measured = {**_record(final=1.0), "setting": PLAIN}
     derived, _ = paper_table.latest_iterate(_record(), ["sac.actor_average=0.0001"])
     assert paper_table.merge([measured], derived, PLAIN) == [measured]
-    # where none is recorded on that file it goes in, and a real run replaces it later
+    # where none is recorded on that file it goes in, and a run merged later replaces it (paper_table itself counts
+    # the derived row as done, as it is that run's reproduction)
     other_file = {**_record(dataset="old", final=1.0), "setting": PLAIN}
     merged = paper_table.merge([other_file], derived, PLAIN)
     assert merged == [other_file, {**derived, "setting": PLAIN}]
