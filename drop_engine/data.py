@@ -31,7 +31,9 @@ class Dataset(Transitions):
         return len(self.observations)
 
     def take(self, rows: np.ndarray) -> Dataset:
-        """The transitions at `rows` (indices or a mask), with this dataset's attrs."""
+        """The transitions at `rows` (indices or a mask), with this dataset's attrs: what the file says of where it
+        came from (its env, its behaviour policy), not a description of the subset. No validation warnings: they were
+        about the whole file."""
         return Dataset(**{name: array[rows] for name, array in self.arrays().items()}, attrs=dict(self.attrs))
 
     @property
