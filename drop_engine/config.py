@@ -230,8 +230,9 @@ def dataset_settings(env: str, task: str | None) -> dict[str, Any]:
 # were set for the squared-error term and carried over; E23 measured 0.4 on hopper-medium, and E46 0.1 there (worse:
 # the critics ran away, DROP 42.9 -> 15.8, MBPO 37.4 -> 2.8). With `sac.value_bound` as well, 0.1 was better for DROP
 # there (E47-E48: 51.5 and 50.7 at seeds 1 and 0, against 42.9 and 36.1) but not for MBPO at seed 0 (21.5 against
-# 36.0), and neutral on halfcheetah-medium: a candidate for the next revision once medium-expert and MOPO are measured. The likelihood term cannot narrow the policy below the
-# temperature's entropy target, so that target is the data's where the data is narrower than -|A| (E28).
+# 36.0), and neutral on halfcheetah-medium: a candidate for the next revision once medium-expert and MOPO are
+# measured. The likelihood term cannot narrow the policy below the temperature's entropy target, so that target is the
+# data's where the data is narrower than -|A| (E28).
 CPU_BC_WEIGHT = {"random": 0.1, "medium": 0.4, "medium-replay": 0.1, "medium-expert": 0.4}
 
 

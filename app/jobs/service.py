@@ -44,11 +44,11 @@ def create(s: Session, owner: str, req: JobRequest, idempotency_key: str | None,
     """(the job, whether this request created it): a request that repeats an earlier one's Idempotency-Key and body
     gets that request's job."""
     digest = _request_hash(req)
-    if idempotency_key:
-        existing = _replay(s, owner, idempotency_key, digest)
-        if existing is not None:
-            return existing, False
     lock_owner(s, owner)  # before the dataset is read: a delete of it either finished first (404) or waits (409)
+    # Under the lock: a request with this key that held it before may have created the job, and its replay is that
+    # job, not a 429 for the place it took or a 404 for a dataset deleted since.
+    if idempotency_key and (existing := _replay(s, owner, idempotency_key, digest)) is not None:
+        return existing, False
     dataset = owned_dataset(s, owner, req.dataset_id)
     env, config = build(req, dataset, settings)
     quotas.check_active_jobs(s, owner, settings)

@@ -3,10 +3,16 @@ owner's stored bytes beyond theirs get 413 and leave nothing behind, and simulta
 from __future__ import annotations
 
 import asyncio
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
 import pytest
+from sqlalchemy import text
+
+from app.owners.lock import lock_owner
+from kernel.models import Job
 
 from .datasets import tiny_npz
 from .private_api import private_api
@@ -101,6 +107,35 @@ def test_simultaneous_creates_do_not_slip_past(tight, client, datasets):
     codes = sorted(r.status_code for r in _concurrently(tight[0], *requests))
     assert codes == [201] * JOB_QUOTA + [429] * (len(datasets) - JOB_QUOTA)
     assert len(_active(client)) == JOB_QUOTA
+
+
+def test_a_replay_that_waited_on_the_owner_lock_is_a_replay(tight, client, datasets):
+    """Two creates with one Idempotency-Key and one place left both find no job under the key, then wait on the owner's
+    lock (held here until both wait): the one served second gets the first's job, not a 429 for the quota that job
+    took."""
+    app = tight[0]
+    held = client.post("/v1/jobs", json=_job(datasets[0]))
+    assert held.status_code == 201
+    auth = {"Authorization": client.headers["authorization"], "Idempotency-Key": "wait-on-the-lock"}
+    request = ("POST", "/v1/jobs", {"json": _job(datasets[1]), "headers": auth})
+    def waiting() -> int:  # in a transaction of its own: within one, pg_stat_activity is one snapshot
+        with app.state.engine.connect() as c:
+            return c.execute(text("SELECT count(*) FROM pg_stat_activity WHERE wait_event_type = 'Lock' "
+                                  "AND query LIKE 'UPDATE owners%'")).scalar()
+
+    with app.state.sessions() as s, ThreadPoolExecutor(1) as pool:
+        lock_owner(s, s.get(Job, held.json()["id"]).owner_id)
+        try:
+            sent = pool.submit(_concurrently, app, request, request)
+            deadline = time.monotonic() + 30
+            while waiting() < 2 and not sent.done():
+                assert time.monotonic() < deadline, "the creates never waited on the owner's lock"
+                time.sleep(0.02)
+        finally:
+            s.rollback()  # the lock: the creates go on
+        responses = sorted(sent.result(), key=lambda r: r.status_code)
+    assert [r.status_code for r in responses] == [200, 201], [r.text for r in responses]
+    assert responses[0].json()["id"] == responses[1].json()["id"]
 
 
 def _leftovers(settings) -> set[Path]:
