@@ -141,11 +141,14 @@ def checkpoints_page(s: Session, owner: str, job_id: str) -> dict:
 
 def policy_file(s: Session, owner: str, job_id: str, which: Which, fmt: PolicyFormat,
                 settings: Settings) -> tuple[Path, str]:
-    """(path, media type) of the job's `which` policy in format `fmt`: 409 until the job has succeeded, 404 if that
-    file is missing."""
+    """(path, media type) of the job's `which` policy in format `fmt`: 409 `policy_not_ready` while the job may still
+    succeed, 409 `job_not_succeeded` once it failed or was cancelled (a script that waits on the first must stop on the
+    second), 404 if that file is missing."""
     row = owned_job(s, owner, job_id)
+    if row.status in (JobStatus.FAILED, JobStatus.CANCELLED):
+        raise Problem(409, "job_not_succeeded", f"job {job_id} is {row.status}: it has no policy and will have none")
     if row.status != JobStatus.SUCCEEDED:
-        raise Problem(409, "policy_not_ready", f"job {job_id} is {row.status}; a policy exists once it has succeeded")
+        raise Problem(409, "policy_not_ready", f"job {job_id} is {row.status}; its policy is ready once it succeeds")
     name, media = POLICY_FILES[fmt]
     folder = job_dir(settings, job_id) / "policy"
     path = folder / which / name

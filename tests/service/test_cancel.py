@@ -55,6 +55,7 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     assert last["epoch"] == done["progress"]["epoch"]
     r = alice.get(f"/v1/jobs/{running['id']}/policy")
     assert r.status_code == 409 and r.headers["content-type"] == "application/problem+json"
+    assert r.json()["code"] == "job_not_succeeded", "a cancelled job will never have a policy: not worth waiting on"
 
     # The cancelled queued job is never run: its message reaches the worker, which cannot claim it.
     time.sleep(2)

@@ -102,3 +102,20 @@ def test_health(client):
     assert "/v1/jobs/{job_id}/policy" in spec["paths"] and "/v1/datasets" in spec["paths"]
     which = next(p for p in spec["paths"]["/v1/jobs/{job_id}/policy"]["get"]["parameters"] if p["name"] == "which")
     assert which["schema"]["enum"] == ["last", "best"] and which["schema"]["default"] == "last"
+
+
+def test_a_policy_is_awaited_while_the_job_may_succeed_and_not_after(settings):
+    """A queued job's policy is not ready yet (worth polling for); a cancelled job's never will be, and its code says
+    so. The job sits in a private queue, so it stays queued."""
+    from .datasets import tiny_npz
+    from .private_api import private_api
+
+    with private_api(settings) as (_, client):
+        dataset_id = client.post("/v1/datasets", content=tiny_npz(0)).json()["id"]
+        job = client.post("/v1/jobs", json={"dataset_id": dataset_id, "env": "hopper", "preset": "smoke"}).json()
+        r = client.get(f"/v1/jobs/{job['id']}/policy")
+        assert (r.status_code, r.json()["code"]) == (409, "policy_not_ready"), r.text
+        assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["status"] == "cancelled"
+        r = client.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best"})
+        assert (r.status_code, r.json()["code"]) == (409, "job_not_succeeded"), r.text
+        assert client.delete(f"/v1/datasets/{dataset_id}").status_code == 204
