@@ -1,5 +1,6 @@
 """What a run will take, computed from its config and its dataset's shape before any work starts, so that a service
-can refuse a job it could not hold (memory), would not finish (SAC updates) or whose record has no bound (metric rows).
+can refuse a job it could not hold (memory, checkpoint disk), would not finish (SAC updates) or whose record has no
+bound (metric rows).
 
 Memory is counted as the trainer holds it: float32 tensors and int64 indices on one device, plus the process itself.
 The large terms (data, model buffer, cached successors, networks) are close; the transient terms are rough. Measured
@@ -24,6 +25,7 @@ ROLLOUT_METRICS = 7  # penalty mean, std, max and share, reward mean, length mea
 DIAG_METRICS = 4  # ensemble disagreement and reward on data and on model rows
 DICE_METRICS = 4  # objective, tau mean, std and negative share on the data; and the averaged tau's mean if averaged
 TAU_METRICS = 3  # tau mean, min and max on the rollouts
+CHECKPOINT_EXTRA = 64 << 10  # a checkpoint's config, evaluations, metric sums, RNG states and the file's framing
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,8 @@ class ResourceEstimate:
     eval_envs: int  # MuJoCo envs open at once while evaluating: one per episode
     sac_updates: int  # epochs x steps_per_epoch
     metric_rows: int  # rows the run records through `Callback.on_metrics`, one per metric and report
+    checkpoint_bytes: int  # one checkpoint, at most
+    checkpoints_at_once: int  # keep_checkpoints, and the newest, written before the oldest is removed
 
     @property
     def memory_bytes(self) -> int:
@@ -43,8 +47,13 @@ class ResourceEstimate:
         return (self.runtime_bytes + self.parameter_bytes + self.data_bytes + self.model_buffer_bytes
                 + self.working_bytes)
 
+    @property
+    def disk_bytes(self) -> int:
+        """Peak disk of the run's checkpoints, what grows with the config (the policies are a few networks)."""
+        return self.checkpoint_bytes * self.checkpoints_at_once
+
     def to_dict(self) -> dict[str, int]:
-        return {**asdict(self), "memory_bytes": self.memory_bytes}
+        return {**asdict(self), "memory_bytes": self.memory_bytes, "disk_bytes": self.disk_bytes}
 
 
 def _linear(sizes: Sequence[int]) -> int:
@@ -143,4 +152,9 @@ def estimate(cfg: TrainConfig, shape: DataShape) -> ResourceEstimate:
         eval_envs=cfg.eval_episodes,
         sac_updates=cfg.epochs * cfg.steps_per_epoch,
         metric_rows=_metric_rows(cfg),
+        # the dynamics once (its fit is over); actor, critics and DICE with Adam's two moments, the critics' target
+        # copy (an average's copy has no moments: counted with them, over); a full model buffer
+        checkpoint_bytes=FLOAT * (params["dynamics"] + 3 * (params["actor"] + params["dice"]) + 4 * params["critic"]
+                                  + buffer_rows * shape.row_floats) + CHECKPOINT_EXTRA,
+        checkpoints_at_once=cfg.keep_checkpoints + 1,
     )

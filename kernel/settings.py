@@ -23,6 +23,7 @@ class Settings(BaseSettings):
     # Limits on one job, against the engine's estimate (drop_engine/resources.py); past any, creating it is a 422.
     # The defaults admit every preset, `paper` included, on a 2-million-row dataset.
     max_job_memory_bytes: int = Field(8 * 1024**3, ge=1, description="estimated peak memory of one job")
+    max_job_disk_bytes: int = Field(10 * 1024**3, ge=1, description="estimated disk of one job's checkpoints")
     max_job_sac_updates: int = Field(5_000_000, ge=1, description="epochs x steps_per_epoch of one job")
     max_job_metric_rows: int = Field(1_000_000, ge=1, description="metric rows one job may record")
     max_job_eval_episodes: int = Field(100, ge=1, description="episodes per evaluation, each a MuJoCo env held open")

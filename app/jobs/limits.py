@@ -1,6 +1,6 @@
 """The service's limits on one job, checked at creation against the engine's resource estimate: the engine's own
-bounds suit one user's machine, while the service's workers are shared, so a job they could not hold, would not
-finish or whose metrics would grow without bound is refused before it is queued."""
+bounds suit one user's machine, while the service's workers are shared, so a job they could not hold (in memory or on
+disk), would not finish or whose metrics would grow without bound is refused before it is queued."""
 from __future__ import annotations
 
 from drop_engine.config import TrainConfig
@@ -35,6 +35,9 @@ def check(config: TrainConfig, shape: DataShape, settings: Settings) -> None:
         ("eval_episodes", config.eval_episodes, "max_job_eval_episodes", f"eval_episodes {config.eval_episodes}",
          _count),
         ("estimate.memory_bytes", est.memory_bytes, "max_job_memory_bytes", _memory(est), _size),
+        ("estimate.disk_bytes", est.disk_bytes, "max_job_disk_bytes",
+         f"estimated checkpoint disk {_size(est.disk_bytes)} ({est.checkpoints_at_once} checkpoints of "
+         f"{_size(est.checkpoint_bytes)}: keep_checkpoints and the newest, written before the oldest goes)", _size),
         ("estimate.sac_updates", est.sac_updates, "max_job_sac_updates",
          f"{_count(est.sac_updates)} SAC updates (epochs x steps_per_epoch)", _count),
         ("estimate.metric_rows", est.metric_rows, "max_job_metric_rows",

@@ -65,4 +65,10 @@ def test_counts_match_a_real_run(tmp_path, hopper_dataset, algorithm, overrides)
     built = {"dynamics": size(trainer.model), "actor": size(trainer.sac.actor) + size(trainer.sac.actor_average),
              "critic": size(trainer.sac.critic), "dice": size(trainer.dice)}
     assert parameter_counts(cfg, shape) == built
-    assert estimate(cfg, shape).metric_rows == rows.rows
+    est = estimate(cfg, shape)
+    assert est.metric_rows == rows.rows
+    # checkpoints (the smoke preset writes one an epoch): none larger than the estimate, no more at once than it
+    # counts (keep_checkpoints, as the newest had replaced the oldest), and the estimate not far over
+    files = list((tmp_path / "checkpoints").iterdir())
+    largest = max(f.stat().st_size for f in files)
+    assert len(files) == est.checkpoints_at_once - 1 and est.checkpoint_bytes / 4 < largest <= est.checkpoint_bytes

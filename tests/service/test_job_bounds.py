@@ -91,6 +91,7 @@ def test_deep_overrides_are_422(apis, depth, nest):
     ({"rollout.batch_size": 1_000_000, "rollout.horizon": 1_000}, "estimate.memory_bytes",
      "DROP_MAX_JOB_MEMORY_BYTES"),
     ({"epochs": 100_000, "steps_per_epoch": 1_000}, "estimate.sac_updates", "DROP_MAX_JOB_SAC_UPDATES"),
+    ({"keep_checkpoints": 100, "rollout.batch_size": 200_000}, "estimate.disk_bytes", "DROP_MAX_JOB_DISK_BYTES"),
     ({"epochs": 1_000, "steps_per_epoch": 1_000, "log_every": 1}, "estimate.metric_rows", "DROP_MAX_JOB_METRIC_ROWS"),
 ])
 def test_jobs_over_the_server_limits_are_422(apis, overrides, field, setting):
@@ -105,9 +106,11 @@ def test_jobs_over_the_server_limits_are_422(apis, overrides, field, setting):
 def test_the_memory_detail_says_where_it_goes(apis):
     """Smoke DROP on 39 rows: a model buffer of 10^6 rollouts x 1,000 steps x 2 epochs x 108-byte rows, and rollouts
     holding their 1,000 transitions until complete, with 3 floats per step for the statistics besides each start
-    state's tensors."""
+    state's tensors; and that buffer in each of the 3 checkpoints at once."""
     r = _post(apis, '{"rollout": {"batch_size": 1000000, "horizon": 1000}}')
-    assert _refused(r, "job_over_limit", "estimate.memory_bytes")["detail"] == (
+    memory, disk = _refused(r, "job_over_limit", "estimate.memory_bytes")["detail"].split("; ")
+    assert disk.startswith("estimated checkpoint disk 603 GiB (3 checkpoints of 201 GiB")
+    assert memory == (
         "estimated memory 314 GiB (process 400 MiB, parameters 257 KiB, data 11.9 KiB, model buffer 201 GiB, "
         "largest phase 112 GiB) exceeds the server's limit of 8 GiB (DROP_MAX_JOB_MEMORY_BYTES)")
 
