@@ -29,6 +29,7 @@ SSE_POLL_S = 0.5
 SSE_KEEPALIVE_S = 15.0
 MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a larger cursor is a 422, not a 500
 After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
+RowLimit = Annotated[int, Query(ge=1, le=10000)]  # rows of a page of metrics or evaluations
 
 
 # What may not appear raw in an event's one `data:` line. A stored JSON column passes through as its text, where a line
@@ -105,18 +106,20 @@ async def jobs_get_events(job_id: str, request: Request, owner: OwnerId, after: 
 @router.get("/metrics", response_model=Page[MetricOut], summary="Scalar training metrics, oldest first; filter by name")
 def jobs_get_metrics(job_id: str, owner: OwnerId, s: DbSession,
                      name: Annotated[str | None, Query(max_length=100, pattern=r"^[^\x00]*$")] = None,
-                     after: After = 0, limit: Annotated[int, Query(ge=1, le=10000)] = 1000) -> dict:
+                     after: After = 0, limit: RowLimit = 1000) -> dict:
     return reads.metrics_page(s, owner, job_id, name, after, limit)
 
 
 @router.get("/evaluations", response_model=Page[EvaluationOut],
             summary="Evaluations in the real env (return and D4RL normalised score)")
-def jobs_get_evaluations(job_id: str, owner: OwnerId, s: DbSession) -> dict:
-    return reads.evaluations_page(s, owner, job_id)
+def jobs_get_evaluations(job_id: str, owner: OwnerId, s: DbSession, after: After = 0,
+                         limit: RowLimit = 1000) -> dict:
+    return reads.evaluations_page(s, owner, job_id, after, limit)
 
 
 @router.get("/checkpoints", response_model=Page[CheckpointOut],
-            summary="Checkpoints still on disk (older ones are pruned by the trainer)")
+            summary="Checkpoints still on disk, at most keep_checkpoints + 1 (the trainer prunes older ones), so "
+                    "one page")
 def jobs_get_checkpoints(job_id: str, owner: OwnerId, s: DbSession) -> dict:
     return reads.checkpoints_page(s, owner, job_id)
 

@@ -128,8 +128,10 @@ def evaluations(s: Session, owner: str, job_id: str) -> list[JobEvaluation]:
     return list(s.scalars(select(JobEvaluation).where(JobEvaluation.job_id == job_id).order_by(JobEvaluation.id)))
 
 
-def evaluations_page(s: Session, owner: str, job_id: str) -> dict:
-    return page([schemas.evaluation(r) for r in evaluations(s, owner, job_id)], False)
+def evaluations_page(s: Session, owner: str, job_id: str, after: int, limit: int) -> dict:
+    owned_job(s, owner, job_id)
+    q = select(JobEvaluation).where(JobEvaluation.job_id == job_id, JobEvaluation.id > after)
+    return fetch_page(s, q.order_by(JobEvaluation.id), schemas.evaluation, limit)
 
 
 def checkpoints_page(s: Session, owner: str, job_id: str) -> dict:

@@ -58,6 +58,10 @@ def test_upload_train_download(alice, worker, hopper_file, app, settings):
     assert metrics and all(m["name"] == "sac/critic_loss" for m in metrics)
     evals = alice.get(f"/v1/jobs/{job['id']}/evaluations").json()["data"]
     assert [e["epoch"] for e in evals] == [1, 2] and evals[-1]["normalized_score"] == done["last_score"]
+    first = alice.get(f"/v1/jobs/{job['id']}/evaluations", params={"limit": 1}).json()
+    assert first["data"] == evals[:1] and first["has_more"] and first["next_after"] == evals[0]["id"]
+    rest = alice.get(f"/v1/jobs/{job['id']}/evaluations", params={"after": first["next_after"]}).json()
+    assert rest["data"] == evals[1:] and not rest["has_more"]
     scores = [e["normalized_score"] for e in evals]
     assert done["best_epoch"] == evals[scores.index(max(scores))]["epoch"] and done["best_score"] == max(scores)
     assert done["final_score"] == sum(scores) / len(scores)  # fewer than three evaluations: the mean of all
