@@ -27,6 +27,11 @@ def utcnow() -> datetime:
     return datetime.now(timezone.utc)
 
 
+# Ids of the tables that grow with every job and are paged by id (events, metrics, evaluations): 64-bit, so they never
+# run out and every cursor the API takes is one (migration 0006). On SQLite INTEGER PRIMARY KEY already is the 64-bit
+# rowid, and only that spelling counts ids up by itself.
+ROW_ID = BigInteger().with_variant(Integer, "sqlite")
+
 class UTCDateTime(TypeDecorator):
     """Timezone-aware UTC on every backend (SQLite stores naive values)."""
 
@@ -138,7 +143,7 @@ class Job(Base):
 class JobEvent(Base):
     __tablename__ = "job_events"
     __table_args__ = (Index("ix_job_events_job_id_id", "job_id", "id"),)
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    id: Mapped[int] = mapped_column(ROW_ID, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     type: Mapped[str] = mapped_column(String(30))
     message: Mapped[str] = mapped_column(Text, default="")
@@ -149,7 +154,7 @@ class JobEvent(Base):
 class JobMetric(Base):
     __tablename__ = "job_metrics"
     __table_args__ = (Index("ix_job_metrics_job_name_step", "job_id", "name", "step"),)
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    id: Mapped[int] = mapped_column(ROW_ID, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
     name: Mapped[str] = mapped_column(String(100))
     step: Mapped[int] = mapped_column(Integer)
@@ -159,7 +164,7 @@ class JobMetric(Base):
 
 class JobEvaluation(Base):
     __tablename__ = "job_evaluations"
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    id: Mapped[int] = mapped_column(ROW_ID, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     epoch: Mapped[int] = mapped_column(Integer)
     mean_return: Mapped[float] = mapped_column(Float)

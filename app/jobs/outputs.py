@@ -27,7 +27,7 @@ from .schemas import CheckpointOut, EvaluationOut, EventOut, MetricOut, PolicyMe
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["job outputs"])
 SSE_POLL_S = 0.5
 SSE_KEEPALIVE_S = 15.0
-MAX_ROW_ID = 2**31 - 1  # event and metric ids are 32-bit integer columns: a larger cursor is a 422, not a 500
+MAX_ROW_ID = 2**63 - 1  # event, metric and evaluation ids are 64-bit columns: a larger cursor is a 422, not a 500
 After = Annotated[int, Query(ge=0, le=MAX_ROW_ID, description="only rows with a larger id (the cursor)")]
 RowLimit = Annotated[int, Query(ge=1, le=10000)]  # rows of a page of metrics or evaluations
 

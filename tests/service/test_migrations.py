@@ -150,3 +150,33 @@ def test_models_describe_the_migrated_schema(backend, tmp_path):
             diff = compare_metadata(MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata)
         engine.dispose()
     assert diff == []
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_row_ids_count_past_32_bits_after_0006(backend, tmp_path):
+    """Events, metrics and evaluations recorded before 0006 keep their ids, and new rows are numbered past 2^31 (on
+    PostgreSQL the sequence was an int4 one, which refused to go there)."""
+    columns = {"job_events": "(job_id, type, message, created_at) VALUES ('job_1', 'status', '', CURRENT_TIMESTAMP)",
+               "job_metrics": "(job_id, name, step, value, created_at) VALUES ('job_1', 'x', 0, 0, CURRENT_TIMESTAMP)",
+               "job_evaluations": "(job_id, epoch, mean_return, normalized_score, created_at) "
+                                  "VALUES ('job_1', 1, 0, 0, CURRENT_TIMESTAMP)"}
+    with database() if backend == "postgresql" else _no_database() as pg_url:
+        url, engine = _old_database(tmp_path, "0005", pg_url)
+        with engine.begin() as conn:
+            _job_row(conn, "job_1", "succeeded")
+            for table, values in columns.items():
+                conn.execute(text(f"INSERT INTO {table} {values}"))
+        upgrade(url)
+        ids = {}
+        with engine.begin() as conn:
+            for table, values in columns.items():
+                if backend == "postgresql":
+                    conn.execute(text(f"SELECT setval('{table}_id_seq', {2**31})"))
+                else:  # the rowid counts on from the largest id
+                    conn.execute(text(f"INSERT INTO {table} (id, {values.removeprefix('(')}"
+                                      .replace("VALUES (", f"VALUES ({2**31}, ")))
+                conn.execute(text(f"INSERT INTO {table} {values}"))
+                ids[table] = sorted(conn.execute(text(f"SELECT id FROM {table}")).scalars())
+        engine.dispose()
+    for table, found in ids.items():
+        assert found[0] == 1 and found[-1] == 2**31 + 1, (table, found)

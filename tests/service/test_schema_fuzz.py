@@ -88,10 +88,13 @@ def test_api_conforms_to_its_schema(fuzzed, capsys):
 
 
 def test_what_fuzzing_found_is_a_4xx(alice):
-    """Each once answered 500: a cursor past the 32-bit id columns or holding a NUL, a metric name with a NUL, and a
-    second job with an empty Idempotency-Key (the request is checked before any lookup, so these ids need not exist)."""
-    for path, params in (("/v1/jobs/job_missing/events", {"after": 2**31}),
-                         ("/v1/jobs/job_missing/metrics", {"after": 2**31}),
+    """Each once answered 500: a cursor past the (now 64-bit) id columns or holding a NUL, a metric name with a NUL, and
+    a second job with an empty Idempotency-Key (the request is checked before any lookup, so these ids need not
+    exist). A cursor past 32 bits is a cursor (migration 0006): the missing job is what is wrong."""
+    for path in ("/v1/jobs/job_missing/events", "/v1/jobs/job_missing/metrics"):
+        assert alice.get(path, params={"after": 2**31}).status_code == 404
+    for path, params in (("/v1/jobs/job_missing/events", {"after": 2**63}),
+                         ("/v1/jobs/job_missing/metrics", {"after": 2**63}),
                          ("/v1/jobs/job_missing/metrics", {"name": "loss\x00"}),
                          ("/v1/jobs", {"after": "\x00"}), ("/v1/datasets", {"after": "ds_\x00"})):
         r = alice.get(path, params=params)
@@ -107,7 +110,7 @@ def test_an_unusable_last_event_id_streams_from_the_start(fuzzed):
     app, auth, known = fuzzed
     with TestClient(app, headers=auth) as client:
         assert client.post(f"/v1/jobs/{known['job_id']}/cancel").status_code == 202  # the stream ends at once
-        for last in (b"9" * 12, "²".encode("latin-1")):
+        for last in (b"9" * 20, "²".encode("latin-1")):  # past 64 bits, and not a number
             with client.stream("GET", f"/v1/jobs/{known['job_id']}/events",
                                headers={"Accept": "text/event-stream", "Last-Event-ID": last}) as r:
                 text = "".join(r.iter_text())
