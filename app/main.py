@@ -21,6 +21,7 @@ from .core.openapi import operation_id
 from .core.slots import stream_slots, upload_slots
 from .core.token_cache import TokenCache
 from .datasets import routes as datasets
+from .datasets.service import sweep_abandoned
 from .datasets.validate import Validator
 from .jobs import outputs
 from .jobs import routes as jobs
@@ -46,6 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if reason:
         engine.dispose()
         raise NotMigrated(reason)
+    sweep_abandoned(settings)
     # JSON bodies are small; only the dataset upload may be large, and it enforces its own limit while streaming.
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
                   lifespan=_lifespan, generate_unique_id_function=operation_id)

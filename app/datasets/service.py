@@ -2,6 +2,9 @@
 datasets, and a delete that cannot pass a job being created on the same dataset."""
 from __future__ import annotations
 
+import logging
+import time
+
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import bindparam, select
@@ -24,6 +27,7 @@ from .schemas import dataset as dataset_dict
 from .upload import Upload, receive
 from .validate import Invalid
 
+log = logging.getLogger("drop.api")
 DATASET = select(Dataset.__table__).where(Dataset.id == bindparam("dataset_id"),
                                           Dataset.owner_id == bindparam("owner"))
 
@@ -112,3 +116,17 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     s.delete(row)
     s.commit()
     remove_tree(dataset_dir(settings, dataset_id))
+
+
+
+def sweep_abandoned(settings: Settings) -> list[str]:
+    """Remove the `uploads/*.part` files an API process killed mid-upload left, and return their names. Only those
+    untouched for twice an upload's longest quiet spell (the body's idle timeout, then validation reading the file),
+    so another process's live upload is never taken."""
+    stale = time.time() - 2 * (settings.body_idle_timeout_s + settings.validate_timeout_s)
+    parts = [p for p in upload_dir(settings).glob("*.part") if p.stat().st_mtime < stale]
+    for path in parts:
+        path.unlink(missing_ok=True)
+    if parts:
+        log.info("removed %d abandoned uploads: %s", len(parts), ", ".join(sorted(p.name for p in parts)))
+    return [p.name for p in parts]

@@ -153,3 +153,24 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
     with pytest.raises(Invalid, match="observations: cannot be read .*filter returned failure"):
         asyncio.run(validator.validate(bomb, out))
     assert not any(out.iterdir())
+
+
+def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
+    """A `.part` untouched for longer than an upload can be quiet (idle body, then validation) is one a killed API
+    process was writing: the next start removes it. A fresh one may be another process's live upload, and stays."""
+    import os
+    import time
+
+    from app.main import create_app
+
+    own = settings.model_copy(update={"data_dir": tmp_path / "data"})
+    own.ensure_dirs()
+    quiet = 2 * (own.body_idle_timeout_s + own.validate_timeout_s)
+    uploads = own.data_dir / "uploads"
+    dead, live, edge = (uploads / f"ds_{name}.part" for name in ("dead", "live", "edge"))
+    for path, age in ((dead, quiet + 60), (live, 0), (edge, quiet - 60)):
+        path.write_bytes(b"half an upload")
+        os.utime(path, (time.time() - age, time.time() - age))
+    app = create_app(own)
+    app.state.engine.dispose()
+    assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
