@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 from fastapi import Request
 from fastapi.concurrency import run_in_threadpool
@@ -67,14 +68,21 @@ def _save(s: Session, row: Dataset, settings: Settings) -> None:
     s.commit()
 
 
+def _staging(target: Path) -> Path:
+    return target.with_name(f"{target.name}.part")
+
+
 async def _validate(request: Request, upload: Upload, dataset_id: str, owner: str) -> Dataset:
-    """The dataset row of a received upload, once the validator has accepted it (and written its file)."""
+    """The dataset row of a received upload, once the validator has accepted it and written its file: into a `.part`
+    folder, which takes the dataset's name only when complete, so a process killed meanwhile leaves only `.part`s."""
     target = dataset_dir(request.app.state.settings, dataset_id)
-    target.mkdir(parents=True)
+    staging = _staging(target)
+    staging.mkdir(parents=True)
     try:
-        result = await request.app.state.validator.validate(upload.path, target, VALIDATION_SECONDS.time())
+        result = await request.app.state.validator.validate(upload.path, staging, VALIDATION_SECONDS.time())
     except Invalid as exc:
         raise Problem(422, "invalid_dataset", str(exc)) from None
+    staging.rename(target)
     report = result["report"]
     return Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
                    sha256=upload.sha256, size_bytes=upload.size,
@@ -97,7 +105,9 @@ async def create(request: Request, owner: str, name: str | None, s: Session, set
                 row = await _validate(request, upload, dataset_id, owner)
                 await run_in_threadpool(_save, s, row, settings)  # a busy SQLite must not block the event loop
             except BaseException:
-                remove_tree(dataset_dir(settings, dataset_id))
+                target = dataset_dir(settings, dataset_id)
+                remove_tree(_staging(target))
+                remove_tree(target)
                 raise
         finally:
             part.unlink(missing_ok=True)
@@ -120,13 +130,17 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
 
 
 def sweep_abandoned(settings: Settings) -> list[str]:
-    """Remove the `uploads/*.part` files an API process killed mid-upload left, and return their names. Only those
-    untouched for twice an upload's longest quiet spell (the body's idle timeout, then validation reading the file),
-    so another process's live upload is never taken."""
+    """Remove what an API process killed mid-upload left, the partial upload (`uploads/*.part`) and the validator's
+    unfinished folder (`datasets/*.part`), and return their names. Only those untouched for twice an upload's longest
+    quiet spell (the body's idle timeout, then validation), so another process's live upload is never taken."""
     stale = time.time() - 2 * (settings.body_idle_timeout_s + settings.validate_timeout_s)
-    parts = [p for p in upload_dir(settings).glob("*.part") if p.stat().st_mtime < stale]
+    parts = [p for folder in (upload_dir(settings), settings.data_dir / "datasets") for p in folder.glob("*.part")
+             if p.stat().st_mtime < stale]
     for path in parts:
-        path.unlink(missing_ok=True)
+        if path.is_dir():
+            remove_tree(path)
+        else:
+            path.unlink(missing_ok=True)
     if parts:
         log.info("removed %d abandoned uploads: %s", len(parts), ", ".join(sorted(p.name for p in parts)))
     return [p.name for p in parts]

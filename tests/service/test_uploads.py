@@ -157,7 +157,8 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
 
 def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
     """A `.part` untouched for longer than an upload can be quiet (idle body, then validation) is one a killed API
-    process was writing: the next start removes it. A fresh one may be another process's live upload, and stays."""
+    process was writing: the next start removes it, the partial upload or the validator's unfinished folder. A fresh
+    one may be another process's live upload, and stays."""
     import os
     import time
 
@@ -171,6 +172,13 @@ def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
     for path, age in ((dead, quiet + 60), (live, 0), (edge, quiet - 60)):
         path.write_bytes(b"half an upload")
         os.utime(path, (time.time() - age, time.time() - age))
+    folders = own.data_dir / "datasets"
+    unfinished, validating = folders / "ds_dead.part", folders / "ds_live.part"
+    for path, age in ((unfinished, quiet + 60), (validating, 0)):
+        path.mkdir()
+        (path / "data.hdf5").write_bytes(b"half a file")
+        os.utime(path, (time.time() - age, time.time() - age))
     app = create_app(own)
     app.state.engine.dispose()
     assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
+    assert [p.name for p in folders.iterdir()] == ["ds_live.part"]
