@@ -1,4 +1,5 @@
-"""Where files live under DROP_DATA_DIR; the database stores these paths, workers on other machines share the volume."""
+"""Where files live under DROP_DATA_DIR, and how the database stores their paths: relative to it, as workers on other
+machines share the volume, possibly mounted elsewhere."""
 from __future__ import annotations
 
 import shutil
@@ -32,6 +33,18 @@ def upload_dir(settings: Settings) -> Path:
     path = settings.data_dir / "uploads"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def to_stored(settings: Settings, path: Path) -> str:
+    """`path`, a file under DROP_DATA_DIR, as the database keeps it: relative to that directory, so that machines
+    mounting the shared volume at different paths all find it."""
+    return str(Path(path).resolve().relative_to(settings.data_dir.resolve()))
+
+
+def from_stored(settings: Settings, stored: str) -> Path:
+    """A stored path on this machine. Rows written before paths were stored relative hold absolute ones, which the
+    join keeps as they are."""
+    return settings.data_dir / stored
 
 
 def remove_tree(path: Path) -> None:

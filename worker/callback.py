@@ -15,15 +15,17 @@ from drop_engine.callbacks import Callback
 from drop_engine.scores import summarize
 from kernel.job_state import JobStatus, still_attempt
 from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from kernel.settings import Settings
+from kernel.storage import from_stored, to_stored
 
 PROGRESS_EVERY_S = 1.0
 
 
 class DbCallback(Callback):
-    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, cancel_poll_s: float,
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, settings: Settings,
                  shutting_down: Callable[[], bool] = lambda: False):
-        self.sessions, self.job_id, self.attempt = sessions, job_id, attempt
-        self.cancel_poll_s = cancel_poll_s
+        self.sessions, self.job_id, self.attempt, self.settings = sessions, job_id, attempt, settings
+        self.cancel_poll_s = settings.cancel_poll_s
         self.shutting_down = shutting_down
         self._last_check = 0.0
         self._last_progress = 0.0
@@ -102,16 +104,16 @@ class DbCallback(Callback):
                                data={"epoch": epoch, "mean_return": mean_return, "normalized_score": normalized_score}))
 
     def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
-        path = Path(path).resolve()
+        stored = to_stored(self.settings, path)
         with self.sessions.begin() as s:
             # A worker that lost the job (re-queued and claimed by another) must not touch the new attempt's rows.
             if s.scalar(select(Job.id).where(self._mine()).with_for_update()) is None:
                 return
             for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
                 # pruned by the trainer, or rewritten: a stop at an epoch boundary saves that epoch's name again
-                if row.path == str(path) or not Path(row.path).exists():
+                if row.path == stored or not from_stored(self.settings, row.path).exists():
                     s.delete(row)
-            s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=str(path),
+            s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=stored,
                                 size_bytes=path.stat().st_size if path.exists() else 0))
             s.add(JobEvent(job_id=self.job_id, type="checkpoint", message=f"checkpoint at epoch {epoch}, step {step}",
                            data={"epoch": epoch, "step": step}))

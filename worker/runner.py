@@ -24,7 +24,7 @@ from kernel.job_state import JobStatus, mark_sent, still_attempt, transition
 from kernel.logs import bound
 from kernel.models import Dataset, Job, JobEvent, utcnow
 from kernel.settings import Settings
-from kernel.storage import job_dir, model_cache_dir
+from kernel.storage import from_stored, job_dir, model_cache_dir
 from kernel.storage_errors import storage_failure
 
 from .callback import DbCallback
@@ -162,7 +162,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
         config_data = dict(job.config)
     if settings.worker_threads:
         config_data["threads"] = settings.worker_threads
-    callback = DbCallback(sessions, job_id, attempt, settings.cancel_poll_s, shutting_down)
+    callback = DbCallback(sessions, job_id, attempt, settings, shutting_down)
     heartbeat = Heartbeat(sessions, job_id, attempt, settings.heartbeat_s)
     heartbeat.start()
     with bound(job_id=job_id, attempt=attempt, worker=name):  # on every log line of this attempt
@@ -187,9 +187,10 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
 
     job_id = job.id
     try:
-        if dataset is None or not Path(dataset.path).is_file():
+        data_file = from_stored(settings, dataset.path) if dataset is not None else None
+        if data_file is None or not data_file.is_file():
             raise DatasetError("file: the job's dataset was deleted")
-        result = train(dataset.path, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback,
+        result = train(data_file, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback,
                        model_cache_dir(settings))
     except DatasetError as exc:
         _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())

@@ -17,7 +17,7 @@ from kernel.ids import is_id, new_id
 from kernel.job_state import ACTIVE, status_in
 from kernel.models import Dataset, Job
 from kernel.settings import Settings
-from kernel.storage import dataset_dir, remove_tree, upload_dir
+from kernel.storage import dataset_dir, remove_tree, to_stored, upload_dir
 
 from ..core.pages import fetch_page
 from ..core.problems import Problem
@@ -75,7 +75,8 @@ def _staging(target: Path) -> Path:
 async def _validate(request: Request, upload: Upload, dataset_id: str, owner: str) -> Dataset:
     """The dataset row of a received upload, once the validator has accepted it and written its file: into a `.part`
     folder, which takes the dataset's name only when complete, so a process killed meanwhile leaves only `.part`s."""
-    target = dataset_dir(request.app.state.settings, dataset_id)
+    settings = request.app.state.settings
+    target = dataset_dir(settings, dataset_id)
     staging = _staging(target)
     staging.mkdir(parents=True)
     try:
@@ -87,7 +88,7 @@ async def _validate(request: Request, upload: Upload, dataset_id: str, owner: st
     return Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
                    sha256=upload.sha256, size_bytes=upload.size,
                    decoded_bytes=DataShape(report["transitions"], report["obs_dim"], report["act_dim"]).decoded_bytes,
-                   path=str((target / result["file"]).resolve()), env=report.get("env"), obs_dim=report["obs_dim"],
+                   path=to_stored(settings, target / result["file"]), env=report.get("env"), obs_dim=report["obs_dim"],
                    act_dim=report["act_dim"], report=report)
 
 

@@ -22,7 +22,7 @@ from kernel.ids import is_id
 from kernel.job_state import JobStatus
 from kernel.models import Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric
 from kernel.settings import Settings
-from kernel.storage import job_dir
+from kernel.storage import from_stored, job_dir
 
 from ..core.pages import fetch_page, page
 from ..core.problems import Problem
@@ -134,11 +134,11 @@ def evaluations_page(s: Session, owner: str, job_id: str, after: int, limit: int
     return fetch_page(s, q.order_by(JobEvaluation.id), schemas.evaluation, limit)
 
 
-def checkpoints_page(s: Session, owner: str, job_id: str) -> dict:
+def checkpoints_page(s: Session, owner: str, job_id: str, settings: Settings) -> dict:
     """The checkpoints still on disk (the trainer prunes older ones)."""
     owned_job(s, owner, job_id)
     rows = s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == job_id).order_by(JobCheckpoint.id))
-    return page([schemas.checkpoint(r) for r in rows if Path(r.path).is_file()], False)
+    return page([schemas.checkpoint(r) for r in rows if from_stored(settings, r.path).is_file()], False)
 
 
 def policy_file(s: Session, owner: str, job_id: str, which: Which, fmt: PolicyFormat,

@@ -15,7 +15,7 @@ def test_non_finite_metrics_keep_the_job_readable(app, alice):
         s.add(Job(id=job_id, owner_id=owner.id, algorithm="drop", env="hopper", preset="smoke", overrides={},
                   seed=0, config={}, status="running", attempts=1, max_attempts=3, max_runtime_s=600))
     try:
-        DbCallback(sessions, job_id, 1, cancel_poll_s=0.1).on_metrics(
+        DbCallback(sessions, job_id, 1, app.state.settings).on_metrics(
             {"sac/q_mean": float("nan"), "sac/critic_loss": float("inf"), "sac/alpha": 0.25}, 10)
         job = alice.get(f"/v1/jobs/{job_id}")
         assert job.status_code == 200, job.text

@@ -182,3 +182,23 @@ def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
     app.state.engine.dispose()
     assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
     assert [p.name for p in folders.iterdir()] == ["ds_live.part"]
+
+
+def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, tmp_path):
+    """The row holds the file's path relative to DROP_DATA_DIR, so a worker that mounts the shared volume elsewhere
+    finds it; a row of before, with an absolute path, is read as it is."""
+    from kernel.models import Dataset
+    from kernel.storage import from_stored
+
+    from .datasets import tiny_npz
+    from .private_api import private_api
+
+    with private_api(settings, data_dir=tmp_path / "here") as (app, client):
+        r = client.post("/v1/datasets", content=tiny_npz(0))
+        assert r.status_code == 201, r.text
+        with app.state.sessions() as s:
+            stored = s.get(Dataset, r.json()["id"]).path
+    (tmp_path / "here").rename(tmp_path / "there")
+    there = settings.model_copy(update={"data_dir": tmp_path / "there"})
+    assert not Path(stored).is_absolute() and from_stored(there, stored).is_file()
+    assert from_stored(there, str(tmp_path / "old.npz")) == tmp_path / "old.npz"
