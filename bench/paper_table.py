@@ -7,7 +7,8 @@ over seeds, beside the behaviour policy's own score.
     python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu] [--jobs 2]
 
 Finished runs are kept in bench/results/paper_table.json, so the table fills up across machines and sessions: a run
-already recorded there with the same preset, overrides and dataset content is not repeated. `make bench-data` is
+already recorded there with the same preset, overrides and dataset content is not repeated (behaviour cloning, which
+reads neither preset nor overrides, is shared by every setting's table). `make bench-data` is
 seeded, but the same seed collects other files on other CPUs or at another thread count (the floating-point sums
 differ, QUALITY.md E9 and E22), so every record carries its dataset's content hash and the table shows, for each
 dataset, only the runs on the file whose behaviour score it prints.
@@ -50,9 +51,12 @@ def bc_setting(steps: int) -> str:
     return f"likelihood-{steps}"
 
 
-def current(record: dict, bc: str) -> bool:
-    """A model-based record, or a BC record of the clone `bc`."""
-    return record["algorithm"] != "bc" or record.get("bc") == bc
+def shown(records: list[dict], setting: dict, bc: str) -> list[dict]:
+    """The records a setting's table shows: its own model-based runs, and the clone `bc`'s runs whichever setting ran
+    them, the latest one per key. Behaviour cloning reads neither the preset nor the overrides, so a new revision or
+    an ablation does not train it again."""
+    clones = {key(r): r for r in records if r["algorithm"] == "bc" and r.get("bc") == bc}
+    return [r for r in records if r["algorithm"] != "bc" and r["setting"] == setting] + list(clones.values())
 
 
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
@@ -214,9 +218,8 @@ def main(argv: list[str] | None = None) -> int:
             merged = now.get("records", []) if record is None else merge(now.get("records", []), record, setting)
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
-        mine = sorted((r for r in on_file(merged, scores) if r["setting"] == setting and current(r, bc)),
-                      key=key)
-        datasets = {f"{r['env']}-{r['kind']}" for r in mine}
+        mine = sorted(shown(on_file(merged, scores), setting, bc), key=key)
+        datasets = {f"{r['env']}-{r['kind']}" for r in on_file(merged, scores) if r["setting"] == setting}
         overrides = " ".join(setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
@@ -238,8 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             raise SystemExit(f"{path} is missing: run `make bench-data` first")
         behaviour[f"{env}-{kind}"] = describe(path)
-    done = {key(r) for r in on_file(kept.get("records", []), behaviour)
-            if r["setting"] == same_setting and current(r, bc)}
+    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), same_setting, bc)}
     # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
     # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its
     # own ensemble, instead of one waiting for the ensemble the other is training (the cache's lock).
@@ -252,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     threads = args.threads or (1 if args.jobs > 1 else None)
     with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn"),
                              initializer=torch.set_num_threads if threads else None, initargs=(threads,)) as pool:
-        futures = [pool.submit(run_one, *job, args, runs) for job in todo]
+        futures = [pool.submit(run_one, *job, args, Path(args.runs) / "bc" if job[4] == "bc" else runs)
+                   for job in todo]
         for future in as_completed(futures):  # recorded as each ends: a stopped table keeps every finished run
             record = future.result()
             print(f"{record['env']}-{record['kind']} {record['algorithm']} seed {record['seed']}: "

@@ -1,5 +1,5 @@
-"""The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, and how records
-merge."""
+"""The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, how records
+merge, and which a setting's table shows."""
 import importlib.util
 from pathlib import Path
 
@@ -65,3 +65,17 @@ def test_a_run_replaces_only_its_own_files_record():
     ablation = {**_record(final=3.0), "setting": {**PLAIN, "set": ["sac.value_bound=true"]}}
     new = _record(final=4.0)
     assert paper_table.merge([old, same, ablation], new, PLAIN) == [old, ablation, {**new, "setting": PLAIN}]
+
+
+def test_behaviour_cloning_is_shown_whichever_setting_ran_it():
+    """A new revision or an ablation shows the clone's runs of any setting (it reads neither), the latest per key,
+    and only its own model-based runs; a clone of another kind is not shown."""
+    ablation = {**PLAIN, "set": ["sac.value_bound=true"]}
+    older = {**_record(algorithm="bc", final=1.0), "bc": "likelihood-100000", "setting": {**PLAIN, "revision": 3}}
+    latest = {**_record(algorithm="bc", final=2.0), "bc": "likelihood-100000", "setting": PLAIN}
+    squared = {**_record(algorithm="bc", final=3.0), "bc": "squared-20000", "setting": ablation, "seed": 1}
+    plain_drop = {**_record(final=4.0), "setting": PLAIN}
+    ablation_drop = {**_record(final=5.0), "setting": ablation}
+    records = [older, latest, squared, plain_drop, ablation_drop]
+    assert paper_table.shown(records, ablation, "likelihood-100000") == [ablation_drop, latest]
+    assert paper_table.shown(records, PLAIN, "likelihood-100000") == [plain_drop, latest]
