@@ -72,7 +72,7 @@ def test_drop_serve_end_to_end_across_a_restart(tmp_path, hopper_file, sig):
     with sqlite3.connect(tmp_path / "data" / "drop.db") as db:
         assert db.execute("SELECT status FROM jobs WHERE id = ?", (job["id"],)).fetchone() == ("queued",)
         rows = db.execute("SELECT path FROM job_checkpoints WHERE job_id = ?", (job["id"],))
-        checkpoints = [Path(p) for (p,) in rows]
+        checkpoints = [tmp_path / "data" / p for (p,) in rows]  # stored relative to the data dir
     assert checkpoints and all(p.is_file() for p in checkpoints)
 
     drop = serve.start()
