@@ -2,6 +2,7 @@
 machines share the volume, possibly mounted elsewhere."""
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -36,9 +37,11 @@ def upload_dir(settings: Settings) -> Path:
 
 
 def to_stored(settings: Settings, path: Path) -> str:
-    """`path`, a file under DROP_DATA_DIR, as the database keeps it: relative to that directory, so that machines
-    mounting the shared volume at different paths all find it."""
-    return str(Path(path).resolve().relative_to(settings.data_dir.resolve()))
+    """`path` as the database keeps it: relative to DROP_DATA_DIR, so that machines mounting the shared volume at
+    different paths all find it. Symbolic links are kept (a `jobs/` linked to another disk is still under the data
+    dir); a path outside it stays absolute."""
+    absolute, root = os.path.abspath(path), os.path.abspath(settings.data_dir)
+    return os.path.relpath(absolute, root) if os.path.commonpath([absolute, root]) == root else absolute
 
 
 def from_stored(settings: Settings, stored: str) -> Path:

@@ -111,7 +111,8 @@ class DbCallback(Callback):
                 return
             for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
                 # pruned by the trainer, or rewritten: a stop at an epoch boundary saves that epoch's name again
-                if row.path == stored or not from_stored(self.settings, row.path).exists():
+                earlier = from_stored(self.settings, row.path)  # a row of before may hold an absolute path
+                if earlier == from_stored(self.settings, stored) or not earlier.exists():
                     s.delete(row)
             s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=stored,
                                 size_bytes=path.stat().st_size if path.exists() else 0))

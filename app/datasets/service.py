@@ -74,7 +74,8 @@ def _staging(target: Path) -> Path:
 
 async def _validate(request: Request, upload: Upload, dataset_id: str, owner: str) -> Dataset:
     """The dataset row of a received upload, once the validator has accepted it and written its file: into a `.part`
-    folder, which takes the dataset's name only when complete, so a process killed meanwhile leaves only `.part`s."""
+    folder, which takes the dataset's name only when complete, so a process killed while validating leaves only
+    `.part`s (killed between the rename and the row's commit, it leaves the folder)."""
     settings = request.app.state.settings
     target = dataset_dir(settings, dataset_id)
     staging = _staging(target)
@@ -130,13 +131,25 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
 
 
 
+def longest_quiet_s(settings: Settings) -> float:
+    """The longest an upload in progress leaves its files untouched: a body's idle timeout, then a wait for a validator
+    behind every other upload this process holds, then its own validation."""
+    waits = -(-settings.max_concurrent_uploads // settings.max_concurrent_validations)
+    return settings.body_idle_timeout_s + (waits + 1) * settings.validate_timeout_s
+
+
 def sweep_abandoned(settings: Settings) -> list[str]:
-    """Remove what an API process killed mid-upload left, the partial upload (`uploads/*.part`) and the validator's
-    unfinished folder (`datasets/*.part`), and return their names. Only those untouched for twice an upload's longest
-    quiet spell (the body's idle timeout, then validation), so another process's live upload is never taken."""
-    stale = time.time() - 2 * (settings.body_idle_timeout_s + settings.validate_timeout_s)
-    parts = [p for folder in (upload_dir(settings), settings.data_dir / "datasets") for p in folder.glob("*.part")
-             if p.stat().st_mtime < stale]
+    """Remove what an API process killed during an upload left, the partial upload (`uploads/*.part`) and the
+    validator's unfinished folder (`datasets/*.part`), and return their names. Only those untouched for twice
+    `longest_quiet_s`, so another process's live upload is never taken."""
+    stale = time.time() - 2 * longest_quiet_s(settings)
+    parts = []
+    for path in (p for folder in (upload_dir(settings), settings.data_dir / "datasets") for p in folder.glob("*.part")):
+        try:
+            if path.stat().st_mtime < stale:
+                parts.append(path)
+        except FileNotFoundError:  # another process starting at the same time swept it first
+            continue
     for path in parts:
         if path.is_dir():
             remove_tree(path)

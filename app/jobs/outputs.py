@@ -118,8 +118,8 @@ def jobs_get_evaluations(job_id: str, owner: OwnerId, s: DbSession, after: After
 
 
 @router.get("/checkpoints", response_model=Page[CheckpointOut],
-            summary="Checkpoints still on disk, at most keep_checkpoints + 1 (the trainer prunes older ones), so "
-                    "one page")
+            summary="Checkpoints still on disk, keep_checkpoints of them (the trainer prunes older ones), so one "
+                    "page")
 def jobs_get_checkpoints(job_id: str, owner: OwnerId, s: DbSession, settings: AppSettings) -> dict:
     return reads.checkpoints_page(s, owner, job_id, settings)
 

@@ -6,7 +6,7 @@ A job may record up to DROP_MAX_JOB_METRIC_ROWS (a million) metric rows and rows
 about 2,100 such jobs and every job's next metric insert failed; the API pages these three tables by id and takes any
 64-bit cursor. PostgreSQL: each column and its sequence become bigint (this rewrites the tables under an exclusive
 lock: run it while the service is stopped). SQLite's INTEGER PRIMARY KEY is already the 64-bit rowid, and stays as it
-is, as it must to keep counting ids.
+is, as it must to keep counting ids. The downgrade fails, and changes nothing, once an id is past 2^31 - 1.
 """
 from alembic import op
 

@@ -156,17 +156,18 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
 
 
 def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
-    """A `.part` untouched for longer than an upload can be quiet (idle body, then validation) is one a killed API
+    """A `.part` untouched for longer than an upload can be quiet (idle body, queued validation) is one a killed API
     process was writing: the next start removes it, the partial upload or the validator's unfinished folder. A fresh
     one may be another process's live upload, and stays."""
     import os
     import time
 
+    from app.datasets.service import longest_quiet_s
     from app.main import create_app
 
     own = settings.model_copy(update={"data_dir": tmp_path / "data"})
     own.ensure_dirs()
-    quiet = 2 * (own.body_idle_timeout_s + own.validate_timeout_s)
+    quiet = 2 * longest_quiet_s(own)
     uploads = own.data_dir / "uploads"
     dead, live, edge = (uploads / f"ds_{name}.part" for name in ("dead", "live", "edge"))
     for path, age in ((dead, quiet + 60), (live, 0), (edge, quiet - 60)):
@@ -188,7 +189,7 @@ def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, 
     """The row holds the file's path relative to DROP_DATA_DIR, so a worker that mounts the shared volume elsewhere
     finds it; a row of before, with an absolute path, is read as it is."""
     from kernel.models import Dataset
-    from kernel.storage import from_stored
+    from kernel.storage import from_stored, to_stored
 
     from .datasets import tiny_npz
     from .private_api import private_api
@@ -202,3 +203,8 @@ def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, 
     there = settings.model_copy(update={"data_dir": tmp_path / "there"})
     assert not Path(stored).is_absolute() and from_stored(there, stored).is_file()
     assert from_stored(there, str(tmp_path / "old.npz")) == tmp_path / "old.npz"
+    # a folder linked to another disk is still under the data dir; a file outside it keeps its absolute path
+    (tmp_path / "disk").mkdir()
+    (tmp_path / "there" / "linked").symlink_to(tmp_path / "disk")
+    assert to_stored(there, tmp_path / "there" / "linked" / "f.pt") == "linked/f.pt"
+    assert to_stored(there, tmp_path / "elsewhere.pt") == str(tmp_path / "elsewhere.pt")
