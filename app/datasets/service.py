@@ -130,7 +130,6 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     remove_tree(dataset_dir(settings, dataset_id))
 
 
-
 def longest_quiet_s(settings: Settings) -> float:
     """The longest an upload in progress leaves its files untouched: a body's idle timeout, then a wait for a validator
     behind every other upload this process holds, then its own validation."""
