@@ -105,6 +105,7 @@ class DbCallback(Callback):
 
     def on_checkpoint(self, path: Path, epoch: int, step: int) -> None:
         stored = to_stored(self.settings, path)
+        written = from_stored(self.settings, stored)
         with self.sessions.begin() as s:
             # A worker that lost the job (re-queued and claimed by another) must not touch the new attempt's rows.
             if s.scalar(select(Job.id).where(self._mine()).with_for_update()) is None:
@@ -112,7 +113,7 @@ class DbCallback(Callback):
             for row in s.scalars(select(JobCheckpoint).where(JobCheckpoint.job_id == self.job_id)):
                 # pruned by the trainer, or rewritten: a stop at an epoch boundary saves that epoch's name again
                 earlier = from_stored(self.settings, row.path)  # a row of before may hold an absolute path
-                if earlier == from_stored(self.settings, stored) or not earlier.exists():
+                if earlier == written or not earlier.exists():
                     s.delete(row)
             s.add(JobCheckpoint(job_id=self.job_id, epoch=epoch, step=step, path=stored,
                                 size_bytes=path.stat().st_size if path.exists() else 0))
