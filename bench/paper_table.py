@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import hashlib
 import json
 import os
+import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -59,6 +61,27 @@ def shown(records: list[dict], setting: dict, bc: str) -> list[dict]:
     return [r for r in records if r["algorithm"] != "bc" and r["setting"] == setting] + list(clones.values())
 
 
+def code_version(root: Path) -> dict:
+    """The commit of the code that finished a run, and a hash of the uncommitted changes to the engine and the bench
+    scripts (None when there are none). Two runs of one seed and setting that differ can then be told apart: other
+    code, or the same code behaving otherwise (QUALITY.md E50). Unknown outside a git checkout."""
+    def git(*argv: str) -> str:
+        return subprocess.run(["git", *argv], cwd=root, capture_output=True, text=True, check=True).stdout
+
+    try:
+        commit = git("rev-parse", "HEAD").strip()
+        paths = ("drop_engine", "bench/*.py")  # not bench/results, which the runs themselves write
+        digest = hashlib.sha256(git("diff", "HEAD", "--binary", "--", *paths).encode())
+        changed = digest.digest() != hashlib.sha256(b"").digest()
+        for name in git("ls-files", "--others", "--exclude-standard", "-z", "--", *paths).split("\0"):
+            if name:
+                digest.update(name.encode() + b"\0" + (root / name).read_bytes())
+                changed = True
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": None, "changes": None}
+    return {"commit": commit, "changes": digest.hexdigest()[:16] if changed else None}
+
+
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
     name = f"bc-{bc_setting(args.bc_steps)}" if algorithm == "bc" else algorithm
     run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{name}-{seed}"
@@ -82,7 +105,7 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
         record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
                   "evaluations": result.evaluations, "dynamics": result.dynamics}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
-                   "seconds": time.perf_counter() - start})
+                   "seconds": time.perf_counter() - start, "code": args.code})
     write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
     return record
 
@@ -199,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="only rewrite this setting's table (paper_table.md; paper_table_KEY-VALUE.md with --set) "
                         "from the recorded runs; train nothing")
     args = p.parse_args(argv)
+    args.code = code_version(Path(__file__).resolve().parent.parent)  # what this invocation's runs import
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, how records
 merge, and which a setting's table shows."""
 import importlib.util
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -79,3 +80,33 @@ def test_behaviour_cloning_is_shown_whichever_setting_ran_it():
     records = [older, latest, squared, plain_drop, ablation_drop]
     assert paper_table.shown(records, ablation, "likelihood-100000") == [ablation_drop, latest]
     assert paper_table.shown(records, PLAIN, "likelihood-100000") == [plain_drop, latest]
+
+
+def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
+    def git(*argv):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *argv], cwd=tmp_path, check=True,
+                       capture_output=True)
+
+    engine = tmp_path / "drop_engine"
+    engine.mkdir()
+    (tmp_path / "bench" / "results").mkdir(parents=True)
+    (engine / "sac.py").write_text("gamma = 0.99\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "base")
+    clean = paper_table.code_version(tmp_path)
+    assert len(clean["commit"]) == 40 and clean["changes"] is None
+
+    (tmp_path / "bench" / "results" / "paper_table.json").write_text("{}")  # what the runs write is not code
+    assert paper_table.code_version(tmp_path) == clean
+
+    (engine / "sac.py").write_text("gamma = 0.9\n")
+    edited = paper_table.code_version(tmp_path)["changes"]
+    (engine / "dice.py").write_text("lam = 1\n")
+    with_new_file = paper_table.code_version(tmp_path)["changes"]
+    (engine / "dice.py").write_text("lam = 2\n")
+    assert len({None, edited, with_new_file, paper_table.code_version(tmp_path)["changes"]}) == 4
+
+
+def test_code_version_outside_a_checkout_is_unknown(tmp_path):
+    assert paper_table.code_version(tmp_path) == {"commit": None, "changes": None}
