@@ -159,6 +159,16 @@ def jobs_cancel(client: DropClient, job_id: str) -> None:
     click.echo(f"{job['id']}: {job['status']}")
 
 
+@jobs.command("rm")
+@click.argument("job_ids", nargs=-1, required=True, metavar="JOB_ID...")
+@remote
+def jobs_rm(client: DropClient, job_ids: tuple[str, ...]) -> None:
+    """Delete finished jobs with their checkpoints and policies (refused while one is queued or running)."""
+    for job_id in job_ids:
+        client.delete_job(job_id)
+        click.echo(f"deleted {job_id}", err=True)
+
+
 @jobs.command("download")
 @click.argument("job_id")
 @click.option("--which", type=click.Choice(get_args(Which)), default="last", show_default=True,

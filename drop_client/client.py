@@ -100,6 +100,10 @@ class DropClient:
         """Cancel a queued job at once or a running one at its next step (it is `cancelling` until then)."""
         return self._request("POST", f"/v1/jobs/{job_id}/cancel").json()
 
+    def delete_job(self, job_id: str) -> None:
+        """Delete a finished job with its checkpoints, policies and records; refused (409) until it has finished."""
+        self._request("DELETE", f"/v1/jobs/{job_id}")
+
     def list_events(self, job_id: str, after: int = 0) -> Iterator[dict]:
         """The job's events so far after event `after`, oldest first."""
         return self._pages(f"/v1/jobs/{job_id}/events", {"limit": 1000, **_given(after=after or None)})

@@ -1,4 +1,4 @@
-"""Jobs: create (idempotent), list, get, cancel."""
+"""Jobs: create (idempotent), list, get, cancel, delete."""
 from __future__ import annotations
 
 from typing import Annotated
@@ -50,3 +50,11 @@ def jobs_cancel(job_id: str, response: Response, owner: OwnerId, s: DbSession) -
     if already:
         response.status_code = 200
     return job(row)
+
+
+@router.delete("/{job_id}", status_code=204,
+               summary="Delete a finished job with its checkpoints, policies and records (409 until it has finished)")
+def jobs_delete(job_id: str, owner: OwnerId, s: DbSession, settings: AppSettings) -> Response:
+    service.delete(s, owner, job_id, settings)
+    return Response(status_code=204)
+

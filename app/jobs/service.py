@@ -1,5 +1,5 @@
 """The service behind /v1/jobs: creating a job (idempotent per Idempotency-Key, within the dataset's shape and the
-server's limits and the owner's quota) and sending it to the workers, and cancelling one."""
+server's limits and the owner's quota) and sending it to the workers, cancelling one, and deleting a finished one."""
 from __future__ import annotations
 
 import hashlib
@@ -16,6 +16,7 @@ from kernel.job_state import JobStatus, mark_sent, transition
 from kernel.models import Job, utcnow
 from kernel.queue import Enqueue
 from kernel.settings import Settings
+from kernel.storage import job_dir, remove_tree
 
 from ..core.problems import Problem
 from ..datasets.service import owned_dataset
@@ -90,3 +91,19 @@ def cancel(s: Session, owner: str, job_id: str) -> tuple[Job, bool]:
     if job.status in (JobStatus.SUCCEEDED, JobStatus.FAILED):
         raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status}); it cannot be cancelled")
     return job, job.status == JobStatus.CANCELLED and not done
+
+
+def delete(s: Session, owner: str, job_id: str, settings: Settings) -> None:
+    """Delete a finished job: its row, with its events, metrics, evaluations and checkpoint rows (the foreign keys
+    cascade), then its folder of checkpoints and policies. 409 while it is queued or running, as a worker may still
+    write there: cancel it first. The rows go before the files, so a crash between them leaves an unlisted folder,
+    never a listed job whose files are gone."""
+    lock_owner(s, owner)  # ordered against a create that would replay this job's Idempotency-Key
+    row = owned_job(s, owner, job_id)
+    if row.status not in job_state.FINAL:
+        raise Problem(409, "job_not_finished",
+                      f"job {job_id} is {row.status}; cancel it and wait until it is cancelled, then delete it")
+    s.delete(row)
+    s.commit()
+    remove_tree(job_dir(settings, job_id))
+

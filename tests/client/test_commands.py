@@ -7,7 +7,7 @@ def test_drop_gathers_every_command_and_has_a_version(capsys):
 
     assert set(drop.commands) == {"train", "plot", "diagnose", "evaluate", "collect", "serve", "api", "worker",
                                   "token", "db", "datasets", "jobs"}
-    assert set(drop.commands["jobs"].commands) == {"submit", "list", "status", "logs", "cancel", "download"}
+    assert set(drop.commands["jobs"].commands) == {"submit", "list", "status", "logs", "cancel", "rm", "download"}
     assert set(drop.commands["datasets"].commands) == {"upload", "list", "rm"}
     assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("drop, version 0.")
     assert main(["train", "--dataset", "x.hdf5", "--out", "run", "--set", "epochs"]) == 2
