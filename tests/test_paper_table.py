@@ -1,5 +1,5 @@
 """The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, how records
-merge, and which a setting's table shows."""
+merge, which a setting's table shows, and the code a record names."""
 import importlib.util
 import subprocess
 from pathlib import Path
