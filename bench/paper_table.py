@@ -62,24 +62,25 @@ def shown(records: list[dict], setting: dict, bc: str) -> list[dict]:
 
 
 def code_version(root: Path) -> dict:
-    """The commit of the code that finished a run, and a hash of the uncommitted changes to the engine and the bench
-    scripts (None when there are none). Two runs of one seed and setting that differ can then be told apart: other
-    code, or the same code behaving otherwise (QUALITY.md E50). Unknown outside a git checkout."""
-    def git(*argv: str) -> str:
-        return subprocess.run(["git", *argv], cwd=root, capture_output=True, text=True, check=True).stdout
+    """The commit of the code this invocation runs, and a hash of the uncommitted changes to the engine and the bench
+    scripts (None when there are none), taken at launch. Two runs of one seed and setting that differ can then be told
+    apart: other code, or the same code behaving otherwise (QUALITY.md E50). A run resumed by a later invocation
+    names that one's code. Unknown outside a git checkout."""
+    def git(*argv: str) -> bytes:
+        return subprocess.run(["git", *argv], cwd=root, capture_output=True, check=True).stdout
 
+    paths = ("drop_engine", ":(glob)bench/*.py")  # not bench/results, which the runs themselves write
     try:
-        commit = git("rev-parse", "HEAD").strip()
-        paths = ("drop_engine", "bench/*.py")  # not bench/results, which the runs themselves write
-        digest = hashlib.sha256(git("diff", "HEAD", "--binary", "--", *paths).encode())
-        changed = digest.digest() != hashlib.sha256(b"").digest()
-        for name in git("ls-files", "--others", "--exclude-standard", "-z", "--", *paths).split("\0"):
-            if name:
-                digest.update(name.encode() + b"\0" + (root / name).read_bytes())
-                changed = True
-    except (OSError, subprocess.CalledProcessError):
+        commit = git("rev-parse", "HEAD").decode().strip()
+        diff = git("diff", "HEAD", "--binary", "--no-ext-diff", "--no-textconv", "--", *paths)
+        new = [name for name in git("ls-files", "--others", "--exclude-standard", "-z", "--", *paths).split(b"\0")
+               if name]
+        digest = hashlib.sha256(diff)
+        for name in new:
+            digest.update(name + b"\0" + (root / name.decode()).read_bytes())
+    except (OSError, UnicodeError, subprocess.CalledProcessError):
         return {"commit": None, "changes": None}
-    return {"commit": commit, "changes": digest.hexdigest()[:16] if changed else None}
+    return {"commit": commit, "changes": digest.hexdigest()[:16] if diff or new else None}
 
 
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:

@@ -140,6 +140,18 @@ class Job(Base):
     dynamics_from_cache: Mapped[bool | None]
 
 
+class DeletedJob(Base):
+    """What /metrics counts of a job that was deleted (its attempts, timings and model-cache use), so the counters it
+    aggregates from the job rows never go down when a job goes (migration 0007)."""
+    __tablename__ = "deleted_jobs"
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    attempts: Mapped[int] = mapped_column(Integer)
+    queue_wait_s: Mapped[float | None] = mapped_column(Float)
+    run_s: Mapped[float | None] = mapped_column(Float)
+    dynamics_from_cache: Mapped[bool | None]
+    deleted_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class JobEvent(Base):
     __tablename__ = "job_events"
     __table_args__ = (Index("ix_job_events_job_id_id", "job_id", "id"),)

@@ -98,14 +98,19 @@ def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
     assert len(clean["commit"]) == 40 and clean["changes"] is None
 
     (tmp_path / "bench" / "results" / "paper_table.json").write_text("{}")  # what the runs write is not code
+    (tmp_path / "bench" / "results" / "notes.py").write_text("x = 1\n")
     assert paper_table.code_version(tmp_path) == clean
+    (tmp_path / "bench" / "paper_table.py").write_text("REVISION = 5\n")
+    script = paper_table.code_version(tmp_path)["changes"]
+    assert script is not None
+    (tmp_path / "bench" / "paper_table.py").unlink()
 
     (engine / "sac.py").write_text("gamma = 0.9\n")
     edited = paper_table.code_version(tmp_path)["changes"]
     (engine / "dice.py").write_text("lam = 1\n")
     with_new_file = paper_table.code_version(tmp_path)["changes"]
     (engine / "dice.py").write_text("lam = 2\n")
-    assert len({None, edited, with_new_file, paper_table.code_version(tmp_path)["changes"]}) == 4
+    assert len({None, script, edited, with_new_file, paper_table.code_version(tmp_path)["changes"]}) == 5
 
 
 def test_code_version_outside_a_checkout_is_unknown(tmp_path):

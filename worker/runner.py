@@ -24,7 +24,7 @@ from kernel.job_state import JobStatus, mark_sent, still_attempt, transition
 from kernel.logs import bound
 from kernel.models import Dataset, Job, JobEvent, utcnow
 from kernel.settings import Settings
-from kernel.storage import from_stored, job_dir, model_cache_dir
+from kernel.storage import from_stored, job_dir, model_cache_dir, remove_tree
 from kernel.storage_errors import storage_failure
 
 from .callback import DbCallback
@@ -233,4 +233,8 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
                   result=result.to_dict()):
             return "cancelled"
     log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
+    with sessions() as s:
+        deleted = s.get(Job, job_id) is None
+    if deleted:  # a reaper had given it up and its owner deleted it: the stop's checkpoint must not outlive it
+        remove_tree(job_dir(settings, job_id))
     return "lost"

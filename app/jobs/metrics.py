@@ -3,18 +3,18 @@ dynamics-cache hits and misses.
 
 The job rows are the truth whichever worker (on whichever machine, in whichever short-lived pool process) ran a job,
 so aggregating them in SQL needs no metrics server in the workers and loses nothing when a worker dies. Each scrape
-reads the jobs table once or twice: cheap at this service's scale.
+reads the jobs table, and the deleted jobs' counts (`DeletedJob`), once or twice: cheap at this service's scale.
 """
 from __future__ import annotations
 
 from typing import Iterable, Sequence
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
-from sqlalchemy import case, func, select
+from sqlalchemy import case, func, select, union_all
 from sqlalchemy.engine import Engine
 
 from kernel.job_state import FINAL, JobStatus, status_in
-from kernel.models import Job
+from kernel.models import DeletedJob, Job
 
 QUEUE_WAIT_BUCKETS = (1, 5, 15, 60, 300, 900, 3600, 4 * 3600, 24 * 3600)
 RUN_BUCKETS = (10, 60, 300, 900, 3600, 3 * 3600, 12 * 3600, 24 * 3600, 72 * 3600)
@@ -39,12 +39,19 @@ class JobMetrics:
         self.engine = engine
 
     def collect(self) -> Iterable[Metric]:
+        # Deleted jobs still count (DeletedJob): a counter read from rows would otherwise go down when one goes.
+        # Each was final when deleted, so its run seconds count as a finished job's.
+        counted = union_all(
+            select(Job.attempts, Job.dynamics_from_cache, Job.queue_wait_s,
+                   case((status_in(FINAL), Job.run_s)).label("run_s")),
+            select(DeletedJob.attempts, DeletedJob.dynamics_from_cache, DeletedJob.queue_wait_s, DeletedJob.run_s),
+        ).subquery()
         aggregates = select(
-            func.coalesce(func.sum(Job.attempts), 0),
-            func.count(case((Job.dynamics_from_cache.is_(True), 1))),
-            func.count(case((Job.dynamics_from_cache.is_(False), 1))),
-            *_histogram_columns(Job.queue_wait_s, QUEUE_WAIT_BUCKETS),
-            *_histogram_columns(case((status_in(FINAL), Job.run_s)), RUN_BUCKETS),
+            func.coalesce(func.sum(counted.c.attempts), 0),
+            func.count(case((counted.c.dynamics_from_cache.is_(True), 1))),
+            func.count(case((counted.c.dynamics_from_cache.is_(False), 1))),
+            *_histogram_columns(counted.c.queue_wait_s, QUEUE_WAIT_BUCKETS),
+            *_histogram_columns(counted.c.run_s, RUN_BUCKETS),
         )
         with self.engine.connect() as conn:
             by_status = dict(conn.execute(select(Job.status, func.count()).group_by(Job.status)).all())

@@ -57,4 +57,3 @@ def jobs_cancel(job_id: str, response: Response, owner: OwnerId, s: DbSession) -
 def jobs_delete(job_id: str, owner: OwnerId, s: DbSession, settings: AppSettings) -> Response:
     service.delete(s, owner, job_id, settings)
     return Response(status_code=204)
-

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from kernel import job_state
 from kernel.ids import new_id
 from kernel.job_state import JobStatus, mark_sent, transition
-from kernel.models import Job, utcnow
+from kernel.models import DeletedJob, Job, utcnow
 from kernel.queue import Enqueue
 from kernel.settings import Settings
 from kernel.storage import job_dir, remove_tree
@@ -95,15 +95,16 @@ def cancel(s: Session, owner: str, job_id: str) -> tuple[Job, bool]:
 
 def delete(s: Session, owner: str, job_id: str, settings: Settings) -> None:
     """Delete a finished job: its row, with its events, metrics, evaluations and checkpoint rows (the foreign keys
-    cascade), then its folder of checkpoints and policies. 409 while it is queued or running, as a worker may still
-    write there: cancel it first. The rows go before the files, so a crash between them leaves an unlisted folder,
-    never a listed job whose files are gone."""
+    cascade), then its folder of checkpoints and policies; what /metrics counts of it stays (`DeletedJob`). 409
+    while it is queued, running or cancelling, as a worker may still write there: cancel it first. The rows go
+    before the files, so a crash between them leaves an unlisted folder, never a listed job whose files are gone."""
     lock_owner(s, owner)  # ordered against a create that would replay this job's Idempotency-Key
     row = owned_job(s, owner, job_id)
     if row.status not in job_state.FINAL:
         raise Problem(409, "job_not_finished",
                       f"job {job_id} is {row.status}; cancel it and wait until it is cancelled, then delete it")
+    s.add(DeletedJob(id=row.id, attempts=row.attempts, queue_wait_s=row.queue_wait_s, run_s=row.run_s,
+                     dynamics_from_cache=row.dynamics_from_cache))  # /metrics keeps counting it
     s.delete(row)
     s.commit()
     remove_tree(job_dir(settings, job_id))
-

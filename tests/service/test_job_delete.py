@@ -1,11 +1,33 @@
 """Deleting a job: refused (409) until it has finished, then its row, its records and its folder go at once; another
-owner gets 404, and its Idempotency-Key is free again."""
+owner gets 404, its Idempotency-Key is free again, and /metrics still counts it."""
 from __future__ import annotations
 
+import threading
+
+import pytest
 from sqlalchemy import func, select
 
-from kernel.models import JobCheckpoint, JobEvaluation, JobEvent, JobMetric
+from app.core.auth import hash_token
+from drop_engine.config import build_config
+from kernel.db import upgrade
+from kernel.ids import new_id
+from kernel.models import Dataset, DeletedJob, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric, Token
 from kernel.storage import job_dir
+from worker.runner import run_job
+
+from .private_api import private_api
+from .scrapes import sample
+
+# What /metrics counts from the job rows: a deleted job must still count, or the counters would go down.
+COUNTED = ("drop_job_attempts", "drop_job_queue_wait_seconds_count", "drop_job_run_seconds_count",
+           "drop_job_run_seconds_sum", "drop_job_run_seconds_bucket", "drop_dynamics_cache_lookups_total")
+
+
+def _counts(client) -> dict[str, float]:
+    text = client.get("/metrics").text
+    return {name: sample(text, name, **labels) for name, labels in
+            [(n, {}) for n in COUNTED[:4]] + [(COUNTED[4], {"le": "+Inf"}), (COUNTED[5], {"result": "miss"}),
+                                               (COUNTED[5], {"result": "hit"})]}
 
 
 def _records(sessions, job_id: str) -> dict[str, int]:
@@ -48,7 +70,65 @@ def test_a_job_is_deleted_once_finished_with_its_records_and_files(app, settings
     done = alice.api.wait(short.json()["id"], timeout=120)
     assert done["status"] == "succeeded", done
     assert alice.get(f"/v1/jobs/{done['id']}/policy").status_code == 200
+    counted = _counts(alice.client)
+    assert counted["drop_job_run_seconds_count"] >= 2 and counted["drop_job_run_seconds_sum"] > 0
+    succeeded = sample(alice.client.get("/metrics").text, "drop_jobs", status="succeeded")
     assert alice.delete(f"/v1/jobs/{done['id']}").status_code == 204
+    assert _counts(alice.client) == counted, "the deleted job still counts"
+    assert sample(alice.client.get("/metrics").text, "drop_jobs", status="succeeded") == succeeded - 1
     assert alice.get(f"/v1/jobs/{done['id']}/policy").status_code == 404
     assert not job_dir(settings, done["id"]).exists()
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def test_a_worker_that_lost_a_deleted_job_leaves_no_folder(app, settings, alice, hopper_file):
+    """A reaper gave the job up while its worker was still running it (a stale heartbeat: here the row is moved to
+    failed by hand), and its owner deleted it: the worker stops at its next step with a checkpoint, as for any lost
+    job, and then removes the folder that checkpoint went into."""
+    ds = alice.api.upload_dataset(hopper_file)
+    sessions = app.state.sessions
+    with sessions.begin() as s:
+        job = Job(id=new_id("job"), owner_id=s.get(Dataset, ds["id"]).owner_id, dataset_id=ds["id"],
+                  algorithm="drop", env="hopper", preset="smoke", overrides={}, seed=0, status="queued",
+                  max_attempts=3, max_runtime_s=600, config=build_config(
+                      "drop", env="hopper", preset="smoke", overrides={"epochs": 500}).model_dump(mode="json"))
+        s.add(job)
+    outcome: list[str] = []
+    runner = threading.Thread(target=lambda: outcome.append(run_job(settings, sessions, job.id)))
+    runner.start()
+    alice.api.wait(job.id, until=lambda j: (j["progress"] or {}).get("phase") == "train", timeout=90)
+    with sessions.begin() as s:
+        s.get(Job, job.id).status = "failed"
+    assert alice.delete(f"/v1/jobs/{job.id}").status_code == 204
+    runner.join(60)
+    assert outcome == ["lost"]
+    assert not job_dir(settings, job.id).exists()
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_the_records_go_with_the_job_on_either_backend(settings, tmp_path, backend):
+    """The foreign keys' cascade takes a job's records on SQLite (`drop serve`) as on PostgreSQL."""
+    overrides = {}
+    if backend == "sqlite":
+        overrides["database_url"] = f"sqlite:///{tmp_path / 'delete.db'}"
+        upgrade(overrides["database_url"])
+    with private_api(settings, **overrides) as (app, client):
+        sessions = app.state.sessions
+        token = client.headers["authorization"].split()[1]
+        with sessions.begin() as s:
+            owner = s.scalar(select(Token.owner_id).where(Token.token_hash == hash_token(token)))
+            job = Job(id=new_id("job"), owner_id=owner, dataset_id=None, algorithm="drop", env="hopper",
+                      preset="smoke", overrides={}, seed=0, config={}, status="succeeded", max_attempts=3,
+                      max_runtime_s=600, attempts=1, run_s=12.0)
+            s.add(job)
+            s.flush()
+            s.add_all([JobEvent(job_id=job.id, type="status", message="succeeded"),
+                       JobMetric(job_id=job.id, step=1, name="sac/q_mean", value=1.0),
+                       JobEvaluation(job_id=job.id, epoch=1, mean_return=1.0, normalized_score=1.0),
+                       JobCheckpoint(job_id=job.id, epoch=1, step=1, path="jobs/x/c.pt", size_bytes=1)])
+        assert set(_records(sessions, job.id).values()) == {1}
+        assert client.delete(f"/v1/jobs/{job.id}").status_code == 204
+        assert set(_records(sessions, job.id).values()) == {0}
+        with sessions() as s:
+            assert s.get(DeletedJob, job.id).run_s == 12.0

@@ -141,6 +141,10 @@ def test_cli(deployment, hopper_file, tmp_path):
     mismatch = drop("jobs", "submit", "--dataset", ds_id, "--env", "walker2d")
     assert mismatch.exit_code == 1 and "422 env_mismatch: env: walker2d" in mismatch.stderr
     assert drop("jobs", "download", job_id, "--which", "worst").exit_code == 2
+    removed = drop("jobs", "rm", late_id, job_id)  # one failed, one succeeded: both finished, both go
+    assert removed.exit_code == 0 and f"deleted {late_id}" in removed.stderr, removed.output
+    again = drop("jobs", "rm", job_id)
+    assert again.exit_code == 1 and "404 not_found" in again.stderr
     assert drop("datasets", "rm", ds_id).exit_code == 0
     gone = drop("datasets", "rm", ds_id)
     assert gone.exit_code == 1 and "404 not_found" in gone.stderr
