@@ -105,8 +105,22 @@ class Heartbeat(threading.Thread):
         self.join(timeout=self.every_s)
 
 
-def _fail(sessions, job_id: str, attempt: int, code: str, message: str, trace: str) -> None:
-    finish(sessions, job_id, attempt, JobStatus.FAILED, f"failed: {message}", error=(code, message), trace=trace)
+def _fail(sessions: sessionmaker[Session], settings: Settings, job_id: str, attempt: int, code: str, message: str,
+          trace: str) -> str:
+    """'failed', or 'lost' if the job was no longer this attempt's: a job deleted under a worker that had lost it
+    fails that worker's stop checkpoint too, and that is not the job's failure."""
+    if finish(sessions, job_id, attempt, JobStatus.FAILED, f"failed: {message}", error=(code, message), trace=trace):
+        return "failed"
+    return _lost(sessions, settings, job_id, attempt)
+
+
+def _lost(sessions: sessionmaker[Session], settings: Settings, job_id: str, attempt: int) -> str:
+    log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
+    with sessions() as s:
+        deleted = s.get(Job, job_id) is None
+    if deleted:  # a reaper had given it up and its owner deleted it: the stop's checkpoint must not outlive it
+        remove_tree(job_dir(settings, job_id))
+    return "lost"
 
 
 def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message: str) -> bool:
@@ -193,34 +207,31 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         result = train(data_file, TrainConfig.model_validate(config_data), job_dir(settings, job_id), callback,
                        model_cache_dir(settings))
     except DatasetError as exc:
-        _fail(sessions, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
-        return "failed"
+        return _fail(sessions, settings, job_id, attempt, "invalid_dataset", str(exc), traceback.format_exc())
     except TrainingDiverged as exc:
-        _fail(sessions, job_id, attempt, "training_diverged", str(exc), traceback.format_exc())
-        return "failed"
+        return _fail(sessions, settings, job_id, attempt, "training_diverged", str(exc), traceback.format_exc())
     except Exception as exc:
         # The soft limit is raised from a signal handler wherever the job happens to be, and a library may wrap
         # it in its own error type (psycopg, interrupted mid-query): past the deadline, any failure is the timeout.
         if (any(isinstance(e, SoftTimeLimitExceeded) for e in causes(exc))
                 or time.monotonic() - started >= job.max_runtime_s):
-            _fail(sessions, job_id, attempt, "timeout", f"the attempt ran past max_runtime_s={job.max_runtime_s}",
-                  traceback.format_exc())
-            return "failed"
+            return _fail(sessions, settings, job_id, attempt, "timeout",
+                         f"the attempt ran past max_runtime_s={job.max_runtime_s}", traceback.format_exc())
         log.exception("job %s failed", job_id)
         # A full or read-only disk fails the job rather than retrying it: another attempt would meet the same disk.
         code, message = storage_failure(exc, "the run's checkpoint or policy") or unexpected_failure(exc)
-        _fail(sessions, job_id, attempt, code, message, traceback.format_exc())
-        return "failed"
+        return _fail(sessions, settings, job_id, attempt, code, message, traceback.format_exc())
     if result.status == "completed":
         _add_onnx(sessions, job_id, result, dataset.obs_dim)
-        finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded", result=result.to_dict())
-        return "succeeded"
+        if finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded", result=result.to_dict()):
+            return "succeeded"
+        return _lost(sessions, settings, job_id, attempt)
     # A run stopped while fitting its dynamics model has written no checkpoint yet: say so, not that it wrote one.
     checkpointed = result.checkpoint is not None
-    if callback.stop_reason == "cancelled":
-        finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled at a step boundary; final checkpoint written"
-               if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
-               result=result.to_dict())
+    if callback.stop_reason == "cancelled" and finish(
+            sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled at a step boundary; final checkpoint written"
+            if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
+            result=result.to_dict()):
         return "cancelled"
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
@@ -232,9 +243,4 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         if finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled while its worker was shutting down",
                   result=result.to_dict()):
             return "cancelled"
-    log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
-    with sessions() as s:
-        deleted = s.get(Job, job_id) is None
-    if deleted:  # a reaper had given it up and its owner deleted it: the stop's checkpoint must not outlive it
-        remove_tree(job_dir(settings, job_id))
-    return "lost"
+    return _lost(sessions, settings, job_id, attempt)
