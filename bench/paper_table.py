@@ -162,6 +162,16 @@ def on_file(records: list[dict], behaviour: dict[str, dict]) -> list[dict]:
             and r.get("dataset") == d["dataset"]]
 
 
+def displaced(kept: dict, behaviour: dict[str, dict]) -> list[str]:
+    """The datasets whose local file is not the one the table's records were made on. Collection is not bit-identical
+    across CPU kinds, so a file made on another machine would take its dataset's row over and hide those records."""
+    table_files = {name: described(entry)["dataset"] for name, entry in kept.get("behaviour", {}).items()}
+    return [f"{name}: this file is {entry['dataset'][:8]}, the table's runs ({n}) were made on {table_files[name][:8]}"
+            for name, entry in behaviour.items()
+            if table_files.get(name) not in (None, entry["dataset"])
+            and (n := len(on_file(kept.get("records", []), {name: {"dataset": table_files[name]}})))]
+
+
 def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
     def cell(scores: list[float]) -> str:
         return f"{np.mean(scores):.1f} ± {np.std(scores):.1f} (n={len(scores)})" if scores else "-"
@@ -219,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="bench/results")
     p.add_argument("--jobs", type=int, default=1, help="runs at once, one torch thread each")
     p.add_argument("--threads", type=int, default=None, help="torch threads per run (default: 1 with --jobs > 1)")
+    p.add_argument("--new-file", action="store_true",
+                   help="let a dataset file other than the one its table row was made on take that row over")
     p.add_argument("--report", action="store_true",
                    help="only rewrite this setting's table (paper_table.md; paper_table_KEY-VALUE.md with --set) "
                         "from the recorded runs; train nothing")
@@ -266,6 +278,9 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             raise SystemExit(f"{path} is missing: run `make bench-data` first")
         behaviour[f"{env}-{kind}"] = describe(path)
+    if (others := displaced(kept, behaviour)) and not args.new_file:
+        raise SystemExit("not the files of the table's rows (pass --new-file to start those rows over):\n  "
+                         + "\n  ".join(others))
     done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), same_setting, bc)}
     # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
     # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its

@@ -115,3 +115,15 @@ def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
 
 def test_code_version_outside_a_checkout_is_unknown(tmp_path):
     assert paper_table.code_version(tmp_path) == {"commit": None, "changes": None}
+
+
+def test_a_file_of_another_machine_does_not_take_a_row_over():
+    """Only a dataset whose table entry names another file, with runs on it, is displaced."""
+    kept = {"behaviour": {"hopper-medium": {"score": 1.0, "dataset": "abc"}, "hopper-random": 2.0,
+                          "walker2d-medium": {"score": 1.0, "dataset": "unused"}},
+            "records": [{**_record(), "setting": PLAIN}]}
+    local = {"hopper-medium": {"score": 1.5, "dataset": "def"}, "hopper-random": {"score": 2.0, "dataset": "x"},
+             "walker2d-medium": {"score": 1.0, "dataset": "new"}, "halfcheetah-medium": {"score": 0, "dataset": "y"}}
+    assert paper_table.displaced(kept, local) == [
+        "hopper-medium: this file is def, the table's runs (1) were made on abc"]
+    assert paper_table.displaced(kept, {**local, "hopper-medium": {"score": 1.0, "dataset": "abc"}}) == []
