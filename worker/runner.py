@@ -132,9 +132,10 @@ def requeue(sessions: sessionmaker[Session], job_id: str, attempt: int, message:
                                   "run_s": _ran(started_at, utcnow())})
 
 
-def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int) -> None:
+def _add_onnx(sessions: sessionmaker[Session], job_id: str, attempt: int, result, obs_dim: int) -> None:
     """An ONNX copy beside each exported policy (last and best). Best effort: a policy that cannot be expressed in ONNX
-    still leaves TorchScript and state_dict."""
+    still leaves TorchScript and state_dict. The warning is fenced like every write of the attempt: a job deleted
+    meanwhile has no row for it to point to."""
     from drop_engine.export import export_onnx
     from drop_engine.policy_files import FILE_NAMES
 
@@ -145,8 +146,9 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, result, obs_dim: int
         except Exception as exc:
             log.exception("ONNX export of %s's %s policy failed", job_id, which)
             with sessions.begin() as s:
-                s.add(JobEvent(job_id=job_id, type="warning",
-                               message=f"ONNX export of the {which} policy failed: {type(exc).__name__}: {exc}"))
+                if s.scalar(select(Job.id).where(Job.id == job_id, still_attempt(attempt)).with_for_update()):
+                    s.add(JobEvent(job_id=job_id, type="warning",
+                                   message=f"ONNX export of the {which} policy failed: {type(exc).__name__}: {exc}"))
 
 
 def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:
@@ -222,7 +224,7 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         code, message = storage_failure(exc, "the run's checkpoint or policy") or unexpected_failure(exc)
         return _fail(sessions, settings, job_id, attempt, code, message, traceback.format_exc())
     if result.status == "completed":
-        _add_onnx(sessions, job_id, result, dataset.obs_dim)
+        _add_onnx(sessions, job_id, attempt, result, dataset.obs_dim)
         if finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded", result=result.to_dict()):
             return "succeeded"
         return _lost(sessions, settings, job_id, attempt)

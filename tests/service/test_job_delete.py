@@ -3,6 +3,7 @@ owner gets 404, its Idempotency-Key is free again, and /metrics still counts it.
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 import pytest
 from sqlalchemy import func, select
@@ -13,7 +14,7 @@ from kernel.db import upgrade
 from kernel.ids import new_id
 from kernel.models import Dataset, DeletedJob, Job, JobCheckpoint, JobEvaluation, JobEvent, JobMetric, Token
 from kernel.storage import job_dir
-from worker.runner import run_job
+from worker.runner import _add_onnx, run_job
 
 from .private_api import private_api
 from .scrapes import sample
@@ -131,6 +132,32 @@ def test_a_deleted_job_still_counts_in_metrics(settings, tmp_path):
         assert client.delete(f"/v1/jobs/{job.id}").status_code == 204
         assert _counts(client) == counted, "the deleted job still counts"
         assert sample(client.get("/metrics").text, "drop_jobs", status="succeeded") == 0
+
+
+def test_a_failed_onnx_export_warns_only_the_attempt_that_owns_the_job(app, alice, hopper_file, tmp_path):
+    """The warning goes in only while the job is still this attempt's: not into a job taken by another attempt, and
+    into a deleted job not at all (its row is gone: an unfenced insert broke on the foreign key)."""
+    ds = alice.api.upload_dataset(hopper_file)
+    sessions = app.state.sessions
+    with sessions.begin() as s:
+        job = Job(id=new_id("job"), owner_id=s.get(Dataset, ds["id"]).owner_id, dataset_id=ds["id"],
+                  algorithm="drop", env="hopper", preset="smoke", overrides={}, seed=0, status="running",
+                  max_attempts=3, max_runtime_s=600, attempts=2, config={})
+        s.add(job)
+    unexportable = SimpleNamespace(policy={"last": {"torchscript": str(tmp_path / "missing.pt")}})
+
+    def warnings() -> int:
+        with sessions() as s:
+            return s.scalar(select(func.count()).where(JobEvent.job_id == job.id, JobEvent.type == "warning"))
+
+    _add_onnx(sessions, job.id, 1, unexportable, obs_dim=11)
+    assert warnings() == 0, "attempt 1 no longer owns the job"
+    _add_onnx(sessions, job.id, 2, unexportable, obs_dim=11)
+    assert warnings() == 1
+    with sessions.begin() as s:
+        s.delete(s.get(Job, job.id))
+    _add_onnx(sessions, job.id, 2, unexportable, obs_dim=11)
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
 
 
 @pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
