@@ -21,12 +21,12 @@ from .core.openapi import operation_id
 from .core.slots import stream_slots, upload_slots
 from .core.token_cache import TokenCache
 from .datasets import routes as datasets
-from .datasets.service import sweep_abandoned
 from .datasets.validate import Validator
 from .jobs import outputs
 from .jobs import routes as jobs
 from .jobs.event_bus import EventWaker, SharedReads, listen
 from .jobs.metrics import JobMetrics
+from .leftovers import sweep_abandoned
 from .observability import health
 from .observability.observe import ObserveRequests
 from .serving.procs import supervised
@@ -47,7 +47,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if reason:
         engine.dispose()
         raise NotMigrated(reason)
-    sweep_abandoned(settings)
     # JSON bodies are small; only the dataset upload may be large, and it enforces its own limit while streaming.
     app = FastAPI(title="drop-rl", version="1", description="Offline RL training service (DROP, MOPO, MBPO)",
                   lifespan=_lifespan, generate_unique_id_function=operation_id)
@@ -56,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = make_sessionmaker(engine)
+    sweep_abandoned(settings, app.state.sessions)
     app.state.fast_reads = FastReads(engine, settings.db_pool_size)
     app.state.events = EventWaker()
     app.state.shared_reads = SharedReads()

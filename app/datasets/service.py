@@ -2,8 +2,6 @@
 datasets, and a delete that cannot pass a job being created on the same dataset."""
 from __future__ import annotations
 
-import logging
-import time
 from pathlib import Path
 
 from fastapi import Request
@@ -28,7 +26,6 @@ from .schemas import dataset as dataset_dict
 from .upload import Upload, receive
 from .validate import Invalid
 
-log = logging.getLogger("drop.api")
 DATASET = select(Dataset.__table__).where(Dataset.id == bindparam("dataset_id"),
                                           Dataset.owner_id == bindparam("owner"))
 
@@ -135,25 +132,3 @@ def longest_quiet_s(settings: Settings) -> float:
     behind every other upload this process holds, then its own validation."""
     waits = -(-settings.max_concurrent_uploads // settings.max_concurrent_validations)
     return settings.body_idle_timeout_s + (waits + 1) * settings.validate_timeout_s
-
-
-def sweep_abandoned(settings: Settings) -> list[str]:
-    """Remove what an API process killed during an upload left, the partial upload (`uploads/*.part`) and the
-    validator's unfinished folder (`datasets/*.part`), and return their names. Only those untouched for twice
-    `longest_quiet_s`, so another process's live upload is never taken."""
-    stale = time.time() - 2 * longest_quiet_s(settings)
-    parts = []
-    for path in (p for folder in (upload_dir(settings), settings.data_dir / "datasets") for p in folder.glob("*.part")):
-        try:
-            if path.stat().st_mtime < stale:
-                parts.append(path)
-        except FileNotFoundError:  # another process starting at the same time swept it first
-            continue
-    for path in parts:
-        if path.is_dir():
-            remove_tree(path)
-        else:
-            path.unlink(missing_ok=True)
-    if parts:
-        log.info("removed %d abandoned uploads: %s", len(parts), ", ".join(sorted(p.name for p in parts)))
-    return [p.name for p in parts]

@@ -155,34 +155,62 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
     assert not any(out.iterdir())
 
 
-def test_an_api_start_removes_uploads_a_killed_process_left(settings, tmp_path):
+def test_an_api_start_removes_what_a_killed_process_left(settings, tmp_path):
     """A `.part` untouched for longer than an upload can be quiet (idle body, queued validation) is one a killed API
-    process was writing: the next start removes it, the partial upload or the validator's unfinished folder. A fresh
-    one may be another process's live upload, and stays."""
+    process was writing: the next start removes it, the partial upload or the validator's unfinished folder. So is an
+    old folder of a dataset or job whose row is gone (killed between a commit and the files' rename or removal). A
+    fresh one may be another process's live upload, and stays; a folder with its row stays at any age."""
     import os
     import time
 
+    from sqlalchemy import select
+
+    from app.core.auth import create_token, hash_token
     from app.datasets.service import longest_quiet_s
     from app.main import create_app
+    from kernel.db import make_engine, make_sessionmaker
+    from kernel.ids import new_id
+    from kernel.models import Dataset, Job, Token
 
     own = settings.model_copy(update={"data_dir": tmp_path / "data"})
     own.ensure_dirs()
     quiet = 2 * longest_quiet_s(own)
-    uploads = own.data_dir / "uploads"
-    dead, live, edge = (uploads / f"ds_{name}.part" for name in ("dead", "live", "edge"))
-    for path, age in ((dead, quiet + 60), (live, 0), (edge, quiet - 60)):
-        path.write_bytes(b"half an upload")
+
+    def made(path: Path, age: float, folder: bool = False) -> Path:
+        if folder:
+            path.mkdir()
+            (path / "data.hdf5").write_bytes(b"half a file")
+        else:
+            path.write_bytes(b"half an upload")
         os.utime(path, (time.time() - age, time.time() - age))
-    folders = own.data_dir / "datasets"
-    unfinished, validating = folders / "ds_dead.part", folders / "ds_live.part"
-    for path, age in ((unfinished, quiet + 60), (validating, 0)):
-        path.mkdir()
-        (path / "data.hdf5").write_bytes(b"half a file")
-        os.utime(path, (time.time() - age, time.time() - age))
+        return path
+
+    uploads, datasets, jobs = (own.data_dir / name for name in ("uploads", "datasets", "jobs"))
+    for name, age in (("dead", quiet + 60), ("live", 0), ("edge", quiet - 60)):
+        made(uploads / f"ds_{name}.part", age)
+    made(datasets / "ds_dead.part", quiet + 60, folder=True)
+    made(datasets / "ds_live.part", 0, folder=True)
+    engine = make_engine(own.sqlalchemy_url)
+    sessions = make_sessionmaker(engine)
+    token = create_token(sessions, f"leftovers-{new_id('ds')}")
+    with sessions.begin() as s:
+        owner = s.scalar(select(Token.owner_id).where(Token.token_hash == hash_token(token)))
+        kept_ds = Dataset(id=new_id("ds"), owner_id=owner, name="kept", format="npz", sha256="0" * 64, size_bytes=1,
+                          decoded_bytes=1, path="/nonexistent", env="hopper", obs_dim=11, act_dim=3, report={})
+        kept_job = Job(id=new_id("job"), owner_id=owner, dataset_id=None, algorithm="drop", env="hopper",
+                       preset="smoke", overrides={}, seed=0, config={}, status="succeeded", max_attempts=3,
+                       max_runtime_s=600)
+        s.add_all([kept_ds, kept_job])
+    engine.dispose()
+    kept = [made(datasets / kept_ds.id, quiet + 60, folder=True), made(jobs / kept_job.id, quiet + 60, folder=True),
+            made(jobs / new_id("job"), 0, folder=True), made(jobs / "job_not-an-id", quiet + 60, folder=True)]
+    orphans = [made(datasets / new_id("ds"), quiet + 60, folder=True), made(jobs / new_id("job"), quiet + 60, True)]
+
     app = create_app(own)
     app.state.engine.dispose()
     assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
-    assert [p.name for p in folders.iterdir()] == ["ds_live.part"]
+    assert sorted(p.name for p in datasets.iterdir()) == sorted(["ds_live.part", kept_ds.id])
+    assert all(p.is_dir() for p in kept) and not any(p.exists() for p in orphans)
 
 
 def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, tmp_path):
