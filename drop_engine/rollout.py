@@ -85,8 +85,8 @@ def model_rollout(
         "rollout/penalty_max": pen_all.max(),
         "rollout/penalty_share": pen_all.abs().mean() / rew_all.abs().mean().clamp_min(1e-8),
         "rollout/reward_mean": rew_all.mean(),
-        "rollout/length_mean": torch.tensor(added / len(starts)),
-        "rollout/model_buffer_size": torch.tensor(float(len(buffer))),
+        "rollout/length_mean": torch.tensor(added / len(starts), device=starts.device),
+        "rollout/model_buffer_size": torch.tensor(float(len(buffer)), device=starts.device),
     }
     if taus:
         tau_all = torch.cat(taus)

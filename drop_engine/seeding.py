@@ -26,8 +26,8 @@ def rng_state(rng: np.random.Generator, device: torch.device = CPU) -> dict:
 
 
 def load_rng_state(rng: np.random.Generator, state: dict, device: torch.device = CPU) -> None:
-    torch.set_rng_state(state["torch"])
+    torch.set_rng_state(state["torch"].cpu())  # a checkpoint loaded onto a GPU carries it there
     rng.bit_generator.state = state["numpy"]
     random.setstate(state["python"])
     if "cuda" in state and device.type == "cuda":
-        torch.cuda.set_rng_state(state["cuda"], device)
+        torch.cuda.set_rng_state(state["cuda"].cpu(), device)
