@@ -1,10 +1,11 @@
 """What a killed API process left under DROP_DATA_DIR, removed when the next one starts: a partial upload
-(`uploads/*.part`), the validator's unfinished folder (`datasets/*.part`), and the folder of a dataset or job whose
-row is gone (killed between a rename and the row's commit, or between a delete's commit and its `rmtree`).
+(`uploads/*.part`), the validator's unfinished folder (`datasets/*.part`), and the folder of a job deleted by a process
+killed between the delete's commit and its `rmtree`.
 
-Only what has been untouched for twice `longest_quiet_s`, so another process's live upload is never taken; a folder
-with no row is never a live one (a job's folder is made after its row, a dataset's row is committed right after its
-folder is renamed in), and the wait covers a worker that lost a deleted job and still writes its stop checkpoint."""
+Only what has been untouched for twice `longest_quiet_s`, so another process's live upload is never taken. A job's
+folder goes only when `deleted_jobs` records its deletion, never for want of a row: an API started on the wrong
+database (another `DATABASE_URL`, a restored backup) must not take every folder it has no row for. A worker that lost
+a deleted job and still writes its stop checkpoint removes the folder itself (worker/runner.py)."""
 from __future__ import annotations
 
 import logging
@@ -15,14 +16,13 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.ids import is_id
-from kernel.models import Dataset, Job
+from kernel.models import DeletedJob
 from kernel.settings import Settings
 from kernel.storage import remove_tree, upload_dir
 
 from .datasets.service import longest_quiet_s
 
 log = logging.getLogger("drop.api")
-ROWS = (("datasets", "ds", Dataset), ("jobs", "job", Job))
 
 
 def _untouched_since(paths, stale: float) -> list[Path]:
@@ -36,13 +36,13 @@ def _untouched_since(paths, stale: float) -> list[Path]:
     return found
 
 
-def _rowless(sessions: sessionmaker[Session], folders: list[Path], model) -> list[Path]:
+def _deleted_jobs(sessions: sessionmaker[Session], folders: list[Path]) -> list[Path]:
     by_id = {p.name: p for p in folders}
-    ids, known = list(by_id), set()
+    ids, deleted = list(by_id), set()
     with sessions() as s:
         for start in range(0, len(ids), 500):  # under SQLite's limit on bound parameters
-            known.update(s.scalars(select(model.id).where(model.id.in_(ids[start:start + 500]))))
-    return [p for name, p in by_id.items() if name not in known]
+            deleted.update(s.scalars(select(DeletedJob.id).where(DeletedJob.id.in_(ids[start:start + 500]))))
+    return [p for name, p in by_id.items() if name in deleted]
 
 
 def sweep_abandoned(settings: Settings, sessions: sessionmaker[Session]) -> list[str]:
@@ -50,16 +50,14 @@ def sweep_abandoned(settings: Settings, sessions: sessionmaker[Session]) -> list
     stale = time.time() - 2 * longest_quiet_s(settings)
     parts = _untouched_since((p for folder in (upload_dir(settings), settings.data_dir / "datasets")
                               for p in folder.glob("*.part")), stale)
-    orphans = [p for folder, prefix, model in ROWS
-               for p in _rowless(sessions, _untouched_since(
-                   (p for p in (settings.data_dir / folder).glob(f"{prefix}_*") if is_id(p.name, prefix)), stale),
-                   model)]
-    for path in parts + orphans:
+    jobs = _deleted_jobs(sessions, _untouched_since(
+        (p for p in (settings.data_dir / "jobs").glob("job_*") if is_id(p.name, "job")), stale))
+    for path in parts + jobs:
         if path.is_dir():
             remove_tree(path)
         else:
             path.unlink(missing_ok=True)
-    names = sorted(str(p.relative_to(settings.data_dir)) for p in parts + orphans)
+    names = sorted(str(p.relative_to(settings.data_dir)) for p in parts + jobs)
     if names:
         log.info("removed %d leftovers of killed processes: %s", len(names), ", ".join(names))
     return names

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.exc_chain import causes
@@ -145,10 +146,13 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, attempt: int, result
             files["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name(FILE_NAMES["onnx"])))
         except Exception as exc:
             log.exception("ONNX export of %s's %s policy failed", job_id, which)
-            with sessions.begin() as s:
-                if s.scalar(select(Job.id).where(Job.id == job_id, still_attempt(attempt)).with_for_update()):
-                    s.add(JobEvent(job_id=job_id, type="warning",
-                                   message=f"ONNX export of the {which} policy failed: {type(exc).__name__}: {exc}"))
+            try:
+                with sessions.begin() as s:
+                    if s.scalar(select(Job.id).where(Job.id == job_id, still_attempt(attempt)).with_for_update()):
+                        s.add(JobEvent(job_id=job_id, type="warning", message=f"ONNX export of the {which} policy "
+                                       f"failed: {type(exc).__name__}: {exc}"))
+            except IntegrityError:  # SQLite locks no row: the job was deleted between the check and the insert
+                log.warning("job %s was deleted before its ONNX warning was written", job_id)
 
 
 def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:

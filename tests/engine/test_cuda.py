@@ -37,5 +37,7 @@ def test_a_run_stopped_on_the_gpu_resumes_there(tmp_path, hopper_dataset):
     cfg = _config("drop", epochs=3)
     stopped = Trainer(hopper_dataset, cfg, tmp_path, Recorder(stop_in=Trainer._sac_steps, after=35)).run()
     assert stopped.status == "stopped" and list_checkpoints(tmp_path / "checkpoints")
-    resumed = Trainer(hopper_dataset, cfg, tmp_path, Recorder()).run()
+    second = Recorder()
+    resumed = Trainer(hopper_dataset, cfg, tmp_path, second).run()
+    assert second.starts[0] is not None, "it resumed from the checkpoint rather than starting over"
     assert resumed.status == "completed" and [e["epoch"] for e in resumed.evaluations] == [1, 2, 3]

@@ -157,20 +157,20 @@ def test_decompression_bomb_hits_the_validator_memory_limit(tmp_path):
 
 def test_an_api_start_removes_what_a_killed_process_left(settings, tmp_path):
     """A `.part` untouched for longer than an upload can be quiet (idle body, queued validation) is one a killed API
-    process was writing: the next start removes it, the partial upload or the validator's unfinished folder. So is an
-    old folder of a dataset or job whose row is gone (killed between a commit and the files' rename or removal). A
-    fresh one may be another process's live upload, and stays; a folder with its row stays at any age."""
+    process was writing: the next start removes it, the partial upload or the validator's unfinished folder. So is the
+    old folder of a job recorded as deleted (killed between the delete's commit and its removal). A fresh one may be
+    another process's live upload or job, and stays; so does any folder the database has no record of at all, as an
+    API started on the wrong database would have none."""
     import os
     import time
 
-    from sqlalchemy import select
+    from sqlalchemy import delete
 
-    from app.core.auth import create_token, hash_token
     from app.datasets.service import longest_quiet_s
     from app.main import create_app
     from kernel.db import make_engine, make_sessionmaker
     from kernel.ids import new_id
-    from kernel.models import Dataset, Job, Token
+    from kernel.models import DeletedJob
 
     own = settings.model_copy(update={"data_dir": tmp_path / "data"})
     own.ensure_dirs()
@@ -190,27 +190,24 @@ def test_an_api_start_removes_what_a_killed_process_left(settings, tmp_path):
         made(uploads / f"ds_{name}.part", age)
     made(datasets / "ds_dead.part", quiet + 60, folder=True)
     made(datasets / "ds_live.part", 0, folder=True)
+    deleted_old, deleted_fresh = new_id("job"), new_id("job")
     engine = make_engine(own.sqlalchemy_url)
     sessions = make_sessionmaker(engine)
-    token = create_token(sessions, f"leftovers-{new_id('ds')}")
     with sessions.begin() as s:
-        owner = s.scalar(select(Token.owner_id).where(Token.token_hash == hash_token(token)))
-        kept_ds = Dataset(id=new_id("ds"), owner_id=owner, name="kept", format="npz", sha256="0" * 64, size_bytes=1,
-                          decoded_bytes=1, path="/nonexistent", env="hopper", obs_dim=11, act_dim=3, report={})
-        kept_job = Job(id=new_id("job"), owner_id=owner, dataset_id=None, algorithm="drop", env="hopper",
-                       preset="smoke", overrides={}, seed=0, config={}, status="succeeded", max_attempts=3,
-                       max_runtime_s=600)
-        s.add_all([kept_ds, kept_job])
-    engine.dispose()
-    kept = [made(datasets / kept_ds.id, quiet + 60, folder=True), made(jobs / kept_job.id, quiet + 60, folder=True),
-            made(jobs / new_id("job"), 0, folder=True), made(jobs / "job_not-an-id", quiet + 60, folder=True)]
-    orphans = [made(datasets / new_id("ds"), quiet + 60, folder=True), made(jobs / new_id("job"), quiet + 60, True)]
-
-    app = create_app(own)
-    app.state.engine.dispose()
-    assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
-    assert sorted(p.name for p in datasets.iterdir()) == sorted(["ds_live.part", kept_ds.id])
-    assert all(p.is_dir() for p in kept) and not any(p.exists() for p in orphans)
+        s.add_all(DeletedJob(id=job_id, attempts=1) for job_id in (deleted_old, deleted_fresh))
+    try:
+        kept = [made(jobs / deleted_fresh, 0, folder=True), made(jobs / new_id("job"), quiet + 60, folder=True),
+                made(datasets / new_id("ds"), quiet + 60, folder=True)]
+        gone = made(jobs / deleted_old, quiet + 60, folder=True)
+        app = create_app(own)
+        app.state.engine.dispose()
+        assert sorted(p.name for p in uploads.iterdir()) == ["ds_edge.part", "ds_live.part"]
+        assert sorted(p.name for p in datasets.iterdir()) == sorted(["ds_live.part", kept[2].name])
+        assert all(p.is_dir() for p in kept) and not gone.exists()
+    finally:
+        with sessions.begin() as s:
+            s.execute(delete(DeletedJob).where(DeletedJob.id.in_([deleted_old, deleted_fresh])))
+        engine.dispose()
 
 
 def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, tmp_path):
