@@ -164,7 +164,8 @@ def on_file(records: list[dict], behaviour: dict[str, dict]) -> list[dict]:
 
 def displaced(kept: dict, behaviour: dict[str, dict]) -> list[str]:
     """The datasets whose local file is not the one the table's records were made on. Collection is not bit-identical
-    across CPU kinds, so a file made on another machine would take its dataset's row over and hide those records."""
+    across CPU kinds, so a file made on another machine would take its dataset's row over and hide those records.
+    An entry of before content hashes names no file, and guards nothing."""
     table_files = {name: described(entry)["dataset"] for name, entry in kept.get("behaviour", {}).items()}
     return [f"{name}: this file is {entry['dataset'][:8]}, the table's runs ({n}) were made on {table_files[name][:8]}"
             for name, entry in behaviour.items()
