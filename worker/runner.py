@@ -116,6 +116,7 @@ def _fail(sessions: sessionmaker[Session], settings: Settings, job_id: str, atte
 
 
 def _lost(sessions: sessionmaker[Session], settings: Settings, job_id: str, attempt: int) -> str:
+    """The end of an attempt whose job was taken from it: nothing is recorded, as the job is another's or gone."""
     log.warning("job %s: this worker lost it (attempt %s); stopped without recording", job_id, attempt)
     with sessions() as s:
         deleted = s.get(Job, job_id) is None
