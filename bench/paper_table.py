@@ -7,8 +7,9 @@ over seeds, beside the behaviour policy's own score.
     python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu] [--jobs 2]
 
 Finished runs are kept in bench/results/paper_table.json, so the table fills up across machines and sessions: a run
-already recorded there with the same preset, overrides and dataset content is not repeated (behaviour cloning, which
-reads neither preset nor overrides, is shared by every setting's table). `make bench-data` is
+already recorded there with the same resolved config and dataset content is not repeated, whichever preset revision or
+overrides gave that config (behaviour cloning, which reads neither, is shared by every setting's table). `make
+bench-data` is
 seeded, but the same seed collects other files on other CPUs or at another thread count (the floating-point sums
 differ, QUALITY.md E9 and E22), so every record carries its dataset's content hash and the table shows, for each
 dataset, only the runs on the file whose behaviour score it prints.
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import functools
 import hashlib
 import json
 import os
@@ -32,7 +34,7 @@ import torch
 
 from drop_engine.atomic import write_text
 from drop_engine.bc import evaluate_actor, train_bc
-from drop_engine.config import build_config, parse_override
+from drop_engine.config import TrainConfig, build_config, parse_override
 from drop_engine.data import load_dataset
 from drop_engine.run_log import RunLog
 from drop_engine.scores import FINAL_WINDOW, summarize
@@ -45,6 +47,40 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 # 3: the behaviour term on the data actions' likelihood instead of the mean action's squared error (E23).
 # 4: the policy's entropy target no higher than the data's behaviour entropy (sac.target_entropy='data', E28).
 REVISION = 4
+# A run's numbers follow from its dataset, its seed and its config, less the fields that set only its speed or what it
+# keeps on disk. Each record carries that config, so a setting (a revision, an ablation) whose config for a row is one
+# that a run already had shows that run rather than training it again.
+NOT_IDENTITY = {"seed", "threads", "keep_checkpoints"}
+
+
+def identity(cfg: TrainConfig) -> dict:
+    """The config a run's numbers follow from, flat with dotted keys."""
+    def flat(tree: dict, prefix: str = "") -> dict:
+        return {k: v for name, value in tree.items()
+                for k, v in (flat(value, f"{prefix}{name}.") if isinstance(value, dict)
+                             else {f"{prefix}{name}": value}).items()}
+
+    return flat(cfg.model_dump(mode="json", exclude=NOT_IDENTITY))
+
+
+DEFAULTS = identity(TrainConfig())
+
+
+def same_config(stored: dict | None, wanted: dict) -> bool:
+    """Whether a record ran `wanted`. A field the record lacks was added to the engine after that run, which behaved
+    as its default (options are added switched off); a field only the record has was removed, and matches nothing."""
+    return (stored is not None and stored.keys() <= wanted.keys()
+            and all(stored.get(k, DEFAULTS.get(k)) == v for k, v in wanted.items()))
+
+
+def setting_config(setting: dict, device: str = "cpu"):
+    """The config each (env, kind, algorithm) resolves to under a setting, with this checkout's presets."""
+    def wanted(env: str, kind: str, algorithm: str) -> dict:
+        overrides = dict(parse_override(kv) for kv in setting["set"])
+        return identity(build_config(algorithm, env=env, preset=setting["preset"], task=kind, overrides=overrides,
+                                     device=device))
+
+    return functools.cache(wanted)
 
 
 def bc_setting(steps: int) -> str:
@@ -53,12 +89,21 @@ def bc_setting(steps: int) -> str:
     return f"likelihood-{steps}"
 
 
-def shown(records: list[dict], setting: dict, bc: str) -> list[dict]:
-    """The records a setting's table shows: its own model-based runs, and the clone `bc`'s runs whichever setting ran
-    them, the latest one per key. Behaviour cloning reads neither the preset nor the overrides, so a new revision or
-    an ablation does not train it again."""
-    clones = {key(r): r for r in records if r["algorithm"] == "bc" and r.get("bc") == bc}
-    return [r for r in records if r["algorithm"] != "bc" and r["setting"] == setting] + list(clones.values())
+def shown(records: list[dict], wanted, bc: str) -> list[dict]:
+    """The records a setting's table shows: the model-based runs of the configs it resolves to (`wanted(env, kind,
+    algorithm)`), whichever setting recorded them, and the clone `bc`'s runs whichever setting ran them (it reads
+    neither the preset nor the overrides), the latest one per key and file. A recorded run is shown before a derived
+    one (`latest_iterate`), which only reproduces it."""
+    runs: dict[tuple, dict] = {}
+    for r in records:
+        here = (*key(r), r.get("dataset"))
+        if r["algorithm"] == "bc":
+            if r.get("bc") == bc:
+                runs[here] = r
+        elif same_config(r.get("config"), wanted(r["env"], r["kind"], r["algorithm"])) and (
+                here not in runs or "derived_from" not in r or "derived_from" in runs[here]):
+            runs[here] = r
+    return [r for r in runs.values() if r["algorithm"] != "bc"] + [r for r in runs.values() if r["algorithm"] == "bc"]
 
 
 def code_version(root: Path) -> dict:
@@ -104,7 +149,7 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
         record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
-                  "evaluations": result.evaluations, "dynamics": result.dynamics}
+                  "evaluations": result.evaluations, "dynamics": result.dynamics, "config": identity(cfg)}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
                    "seconds": time.perf_counter() - start, "code": args.code})
     write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
@@ -124,8 +169,11 @@ def latest_iterate(record: dict, overrides: list[str]) -> tuple[dict, list[str]]
                     **{k.removeprefix("live_"): v for k, v in e.items() if k.startswith("live_")}}
                    for e in evaluations]
     summary = summarize([(e["epoch"], e["normalized_score"]) for e in evaluations])
-    return {**record, "evaluations": evaluations, "final": summary.final_score, "best": summary.best_score,
-            "best_epoch": summary.best_epoch, "derived_from": overrides}, rest
+    derived = {**record, "evaluations": evaluations, "final": summary.final_score, "best": summary.best_score,
+               "best_epoch": summary.best_epoch, "derived_from": overrides}
+    if "config" in record:
+        derived["config"] = {**record["config"], "sac.actor_average": DEFAULTS["sac.actor_average"]}
+    return derived, rest
 
 
 def key(r: dict) -> tuple:
@@ -133,11 +181,15 @@ def key(r: dict) -> tuple:
 
 
 def merge(records: list[dict], record: dict, setting: dict) -> list[dict]:
-    """`records` with `record` in: it replaces the record of its setting and key on the same file (a run on another
-    file is another run, and stays); a derived record (`latest_iterate`) replaces nothing, as a recorded run is the
-    measurement and the derived one only its reproduction."""
+    """`records` with `record` in: it replaces the record of its config (of its setting, for behaviour cloning) and
+    key on the same file (a run on another file is another run, and stays); a derived record (`latest_iterate`)
+    replaces nothing, as a recorded run is the measurement and the derived one only its reproduction."""
     def same(r: dict) -> bool:
-        return r["setting"] == setting and key(r) == key(record) and r.get("dataset") == record["dataset"]
+        if key(r) != key(record) or r.get("dataset") != record["dataset"]:
+            return False
+        if "config" in record:
+            return same_config(r.get("config"), record["config"])
+        return r["setting"] == setting
 
     if "derived_from" in record and any(same(r) for r in records):
         return records
@@ -192,6 +244,17 @@ def table(records: list[dict], behaviour: dict[str, float | None], algorithms: l
         lines += ["", "From the latest iterate of a run that evaluated an average of the actor's iterates beside it "
                       "(it trains as the run without the average; bench/QUALITY.md E41): " + "; ".join(derived) + "."]
     return "\n".join(lines) + "\n" + targets(records, list(behaviour))
+
+
+def carried(records: list[dict], setting: dict) -> str:
+    """A line naming the settings, other than this one, whose runs the table shows because their config is its own."""
+    others = [r["setting"] for r in records if r["algorithm"] != "bc" and r["setting"] != setting]
+    if not others:
+        return ""
+    names = sorted({f"revision {s.get('revision', '-')}{' with ' + ' '.join(s['set']) if s['set'] else ''}"
+                    for s in others})
+    return (f"\n{len(others)} of these model-based runs were recorded under another setting with the same config: "
+            f"{'; '.join(names)}.\n")
 
 
 def targets(records: list[dict], datasets: list[str]) -> str:
@@ -256,14 +319,16 @@ def main(argv: list[str] | None = None) -> int:
             merged = now.get("records", []) if record is None else merge(now.get("records", []), record, setting)
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
-        mine = sorted(shown(on_file(merged, scores), setting, bc), key=key)
-        datasets = {f"{r['env']}-{r['kind']}" for r in on_file(merged, scores) if r["setting"] == setting}
+        mine = sorted(shown(on_file(merged, scores), setting_config(setting, args.device), bc), key=key)
+        datasets = {f"{r['env']}-{r['kind']}" for r in on_file(merged, scores)
+                    if r["setting"] == setting or r in mine and r["algorithm"] != "bc"}
         overrides = " ".join(setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
                 f"BC: a tanh-Gaussian actor fitted by maximum likelihood for {args.bc_steps:,} steps, acting with its "
                 f"mode, {args.episodes} episodes.\n\n"
-                + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS)))
+                + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS))
+                + carried(mine, setting))
         # Another preset, or a setting with overrides (an ablation), gets a table of its own: never the cpu preset's.
         preset = [] if args.preset == "cpu" else [args.preset]
         name = "_".join(["paper_table", *preset, *setting["set"]]).replace("/", "-").replace("=", "-")
@@ -282,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     if (others := displaced(kept, behaviour)) and not args.new_file:
         raise SystemExit("not the files of the table's rows (pass --new-file to start those rows over):\n  "
                          + "\n  ".join(others))
-    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), same_setting, bc)}
+    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), setting_config(same_setting, args.device),
+                                  bc)}
     # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
     # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its
     # own ensemble, instead of one waiting for the ensemble the other is training (the cache's lock).

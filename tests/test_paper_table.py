@@ -1,5 +1,5 @@
 """The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, how records
-merge, which a setting's table shows, and the code a record names."""
+merge, which a setting's table shows (by the config its runs had), and the code a record names."""
 import importlib.util
 import subprocess
 from pathlib import Path
@@ -11,14 +11,17 @@ paper_table = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(paper_table)
 
 PLAIN = {"preset": "cpu", "set": [], "revision": 4}
+BOUND = {**PLAIN, "set": ["sac.value_bound=true"]}
 
 
-def _record(algorithm="drop", live=True, dataset="abc", final=7.0):
+def _record(algorithm="drop", live=True, dataset="abc", final=7.0, setting=PLAIN):
+    """A run as run_one records it: a model-based run carries the config its setting resolves to."""
     evaluations = [{"epoch": e, "step": 1000 * e, "return": 10.0 * e, "return_std": 1.0, "normalized_score": s}
                    | ({"live_return": 20.0 * e, "live_return_std": 2.0, "live_normalized_score": x} if live else {})
                    for e, s, x in ((10, 5.0, 9.0), (20, 6.0, 3.0), (30, 7.0, 4.0), (40, 8.0, 2.0))]
+    config = {} if algorithm == "bc" else {"config": paper_table.setting_config(setting)("hopper", "medium", algorithm)}
     return {"final": final, "best": 8.0, "best_epoch": 40, "evaluations": evaluations, "algorithm": algorithm,
-            "env": "hopper", "kind": "medium", "seed": 0, "dataset": dataset}
+            "env": "hopper", "kind": "medium", "seed": 0, "dataset": dataset, **config}
 
 
 def test_an_averaged_run_holds_the_plain_runs_record():
@@ -60,26 +63,80 @@ def test_a_derived_record_never_replaces_a_recorded_run():
     assert paper_table.merge(merged, rerun, PLAIN) == [other_file, {**rerun, "setting": PLAIN}]
 
 
-def test_a_run_replaces_only_its_own_files_record():
+def test_a_run_replaces_only_its_own_files_record_of_its_config():
     old = {**_record(dataset="old", final=1.0), "setting": PLAIN}
     same = {**_record(final=2.0), "setting": PLAIN}
-    ablation = {**_record(final=3.0), "setting": {**PLAIN, "set": ["sac.value_bound=true"]}}
+    ablation = {**_record(final=3.0, setting=BOUND), "setting": BOUND}
     new = _record(final=4.0)
     assert paper_table.merge([old, same, ablation], new, PLAIN) == [old, ablation, {**new, "setting": PLAIN}]
+    # another setting that resolves to the same config ran the same run: its record is the one replaced
+    revision_5 = {**PLAIN, "revision": 5}
+    assert paper_table.merge([old, same, ablation], new, revision_5) == [old, ablation, {**new, "setting": revision_5}]
 
 
 def test_behaviour_cloning_is_shown_whichever_setting_ran_it():
     """A new revision or an ablation shows the clone's runs of any setting (it reads neither), the latest per key,
-    and only its own model-based runs; a clone of another kind is not shown."""
-    ablation = {**PLAIN, "set": ["sac.value_bound=true"]}
+    and only the model-based runs of its configs; a clone of another kind is not shown."""
     older = {**_record(algorithm="bc", final=1.0), "bc": "likelihood-100000", "setting": {**PLAIN, "revision": 3}}
     latest = {**_record(algorithm="bc", final=2.0), "bc": "likelihood-100000", "setting": PLAIN}
-    squared = {**_record(algorithm="bc", final=3.0), "bc": "squared-20000", "setting": ablation, "seed": 1}
+    squared = {**_record(algorithm="bc", final=3.0), "bc": "squared-20000", "setting": BOUND, "seed": 1}
     plain_drop = {**_record(final=4.0), "setting": PLAIN}
-    ablation_drop = {**_record(final=5.0), "setting": ablation}
+    ablation_drop = {**_record(final=5.0, setting=BOUND), "setting": BOUND}
     records = [older, latest, squared, plain_drop, ablation_drop]
-    assert paper_table.shown(records, ablation, "likelihood-100000") == [ablation_drop, latest]
-    assert paper_table.shown(records, PLAIN, "likelihood-100000") == [plain_drop, latest]
+    assert paper_table.shown(records, paper_table.setting_config(BOUND), "likelihood-100000") == [ablation_drop, latest]
+    assert paper_table.shown(records, paper_table.setting_config(PLAIN), "likelihood-100000") == [plain_drop, latest]
+
+
+def test_a_setting_shows_the_runs_of_its_config_whichever_setting_recorded_them():
+    """A revision whose preset turns the value bound on shows the runs an ablation made with it under the revision
+    before (and not that revision's plain runs); a run whose record has no config (before configs were recorded) is
+    shown by no setting."""
+    ablation_drop = {**_record(final=5.0, setting=BOUND), "setting": BOUND}
+    plain_drop = {**_record(final=4.0, dataset="other"), "setting": PLAIN}
+    unknown = {key: value for key, value in _record(final=3.0, dataset="third").items() if key != "config"}
+    records = [ablation_drop, plain_drop, {**unknown, "setting": PLAIN}]
+
+    def revision_5(env, kind, algorithm):  # its preset resolves to the ablation's config
+        return paper_table.setting_config(BOUND)(env, kind, algorithm)
+
+    assert paper_table.shown(records, revision_5, "likelihood-100000") == [ablation_drop]
+    text = paper_table.carried([ablation_drop], {**PLAIN, "revision": 5})
+    assert "1 of these model-based runs" in text and "revision 4 with sac.value_bound=true" in text
+    assert paper_table.carried([ablation_drop], BOUND) == ""
+
+
+def test_a_recorded_run_is_shown_before_the_run_derived_from_it():
+    measured = {**_record(final=1.0), "setting": PLAIN}
+    derived, _ = paper_table.latest_iterate(_record(setting={**PLAIN, "set": ["sac.actor_average=0.0001"]}),
+                                            ["sac.actor_average=0.0001"])
+    assert derived["config"] == measured["config"]  # the averaged run trained as the plain one
+    for records in ([measured, {**derived, "setting": PLAIN}], [{**derived, "setting": PLAIN}, measured]):
+        assert paper_table.shown(records, paper_table.setting_config(PLAIN), "bc") == [measured]
+
+
+@pytest.mark.parametrize("change, matches", [
+    ({}, True),
+    ({"sac.value_bound": True}, False),
+    ({"drop": "sac.actor_average"}, True),  # a field added since, at its default
+    ({"drop": "sac.value_bound", "wanted": {"sac.value_bound": True}}, False),  # added since, but not at its default
+    ({"sac.removed_option": 1}, False),  # a field the engine no longer has
+])
+def test_same_config(change, matches):
+    wanted = paper_table.setting_config(PLAIN)("hopper", "medium", "drop")
+    stored = {k: v for k, v in wanted.items() if k != change.get("drop")}
+    stored.update({k: v for k, v in change.items() if k not in ("drop", "wanted")})
+    assert paper_table.same_config(stored, {**wanted, **change.get("wanted", {})}) is matches
+    assert paper_table.same_config(None, wanted) is False
+
+
+def test_a_config_leaves_out_only_speed_and_disk():
+    base = paper_table.identity(paper_table.build_config("drop", env="hopper", task="medium"))
+    for overrides in ({"threads": 4}, {"keep_checkpoints": 5}):
+        assert paper_table.identity(paper_table.build_config("drop", env="hopper", task="medium", seed=3,
+                                                             overrides=overrides)) == base
+    assert paper_table.identity(paper_table.build_config("drop", env="hopper", task="medium",
+                                                         overrides={"log_every": 100})) != base
+    assert base["sac.bc_weight"] == 0.4 and base["penalty.eta"] == 5.0 and "seed" not in base
 
 
 def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
