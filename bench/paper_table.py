@@ -42,15 +42,20 @@ from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
 CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/bench-data"))
-# Bumped when a preset's meaning changes, so runs of the old meaning are kept apart and never counted as the new.
+# The cpu preset's meaning, named in table titles and run directories; bumped when a preset changes. Which runs a table
+# shows is decided by their configs (`identity`), not by this number.
 # 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
 # 3: the behaviour term on the data actions' likelihood instead of the mean action's squared error (E23).
 # 4: the policy's entropy target no higher than the data's behaviour entropy (sac.target_entropy='data', E28).
 REVISION = 4
 # A run's numbers follow from its dataset, its seed and its config, less the fields that set only its speed or what it
 # keeps on disk. Each record carries that config, so a setting (a revision, an ablation) whose config for a row is one
-# that a run already had shows that run rather than training it again.
+# that a run already had shows that run rather than training it again. `threads` changes the float sums, not what is
+# computed; records name it beside the config.
 NOT_IDENTITY = {"seed", "threads", "keep_checkpoints"}
+# Bumped when an existing option's meaning changes (as the value bound's did in ba8b4a7), and part of every run's
+# identity: runs of the old meaning then match no setting.
+SEMANTICS = 1
 
 
 def identity(cfg: TrainConfig) -> dict:
@@ -60,15 +65,16 @@ def identity(cfg: TrainConfig) -> dict:
                 for k, v in (flat(value, f"{prefix}{name}.") if isinstance(value, dict)
                              else {f"{prefix}{name}": value}).items()}
 
-    return flat(cfg.model_dump(mode="json", exclude=NOT_IDENTITY))
+    return {**flat(cfg.model_dump(mode="json", exclude=NOT_IDENTITY)), "semantics": SEMANTICS}
 
 
-DEFAULTS = identity(TrainConfig())
+DEFAULTS = {k: v for k, v in identity(TrainConfig()).items() if k != "semantics"}
 
 
 def same_config(stored: dict | None, wanted: dict) -> bool:
     """Whether a record ran `wanted`. A field the record lacks was added to the engine after that run, which behaved
-    as its default (options are added switched off); a field only the record has was removed, and matches nothing."""
+    as its default (options are added switched off); a field only the record has was removed, and matches nothing;
+    so does a record of other semantics, or of none."""
     return (stored is not None and stored.keys() <= wanted.keys()
             and all(stored.get(k, DEFAULTS.get(k)) == v for k, v in wanted.items()))
 
@@ -132,27 +138,41 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
     name = f"bc-{bc_setting(args.bc_steps)}" if algorithm == "bc" else algorithm
     run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{name}-{seed}"
     done = run_dir / "result.json"
+    cfg = None if algorithm == "bc" else build_config(
+        algorithm, env=env, preset=args.preset, task=kind, overrides=dict(parse_override(kv) for kv in args.set),
+        seed=seed, device=args.device)
     if done.exists():
-        return json.loads(done.read_text())
+        return finished(done, cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    if algorithm == "bc":
+    if cfg is None:
         data = load_dataset(data_path, env=env)
         evaluation = evaluate_actor(train_bc(data, args.bc_steps, seed=seed), env, args.episodes, seed=10_000 + seed)
         record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": [],
                   "bc": bc_setting(args.bc_steps)}
     else:
-        overrides = dict(parse_override(kv) for kv in args.set)
-        cfg = build_config(algorithm, env=env, preset=args.preset, task=kind, overrides=overrides, seed=seed,
-                           device=args.device)
         result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
         if result.status != "completed":
             raise SystemExit(f"{run_dir}: stopped before the end")
         record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
                   "evaluations": result.evaluations, "dynamics": result.dynamics, "config": identity(cfg)}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
-                   "seconds": time.perf_counter() - start, "code": args.code})
+                   "seconds": time.perf_counter() - start, "code": args.code, "threads": torch.get_num_threads()})
     write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
+    return record
+
+
+def finished(done: Path, cfg: TrainConfig | None) -> dict:
+    """The record of a run already finished in this directory. The directory is named by revision and overrides, so
+    a run of before configs were recorded had `cfg`; a recorded config that is not `cfg` means a preset changed
+    without a revision bump, and its run is not this one."""
+    record = json.loads(done.read_text())
+    if cfg is None:
+        return record
+    record.setdefault("config", identity(cfg))
+    if not same_config(record["config"], identity(cfg)):
+        raise SystemExit(f"{done.parent} holds a run of another config than this setting's: a preset changed without "
+                         "a revision bump (bump REVISION in bench/paper_table.py)")
     return record
 
 
@@ -284,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--preset", default="cpu")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for all runs")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="also which runs the table shows: a config names its device")
     p.add_argument("--episodes", type=int, default=10, help="evaluation episodes for BC")
     p.add_argument("--bc-steps", type=int, default=100_000)
     p.add_argument("--runs", default=str(Path.home() / ".cache/drop-rl/bench-runs"))
@@ -320,8 +340,7 @@ def main(argv: list[str] | None = None) -> int:
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
         mine = sorted(shown(on_file(merged, scores), setting_config(setting, args.device), bc), key=key)
-        datasets = {f"{r['env']}-{r['kind']}" for r in on_file(merged, scores)
-                    if r["setting"] == setting or r in mine and r["algorithm"] != "bc"}
+        datasets = {f"{r['env']}-{r['kind']}" for r in mine if r["algorithm"] != "bc" or r["setting"] == setting}
         overrides = " ".join(setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
                 f"{', ' + overrides if overrides else ''}; D4RL normalised scores, mean ± std over n seeds)\n\n"
@@ -347,8 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     if (others := displaced(kept, behaviour)) and not args.new_file:
         raise SystemExit("not the files of the table's rows (pass --new-file to start those rows over):\n  "
                          + "\n  ".join(others))
-    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), setting_config(same_setting, args.device),
-                                  bc)}
+    wanted = setting_config(same_setting, args.device)
+    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), wanted, bc)}
     # Seed-major, so a stopped table has every algorithm on the same seeds rather than all seeds of a few; then
     # algorithm by algorithm across the datasets, so runs side by side are on different datasets and each trains its
     # own ensemble, instead of one waiting for the ensemble the other is training (the cache's lock).

@@ -1,6 +1,7 @@
 """The table's bookkeeping: the row without the average that a run with `sac.actor_average` holds, how records
 merge, which a setting's table shows (by the config its runs had), and the code a record names."""
 import importlib.util
+import json
 import subprocess
 from pathlib import Path
 
@@ -11,7 +12,8 @@ paper_table = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(paper_table)
 
 PLAIN = {"preset": "cpu", "set": [], "revision": 4}
-BOUND = {**PLAIN, "set": ["sac.value_bound=true"]}
+# an ablation no preset turns on, so that these tests hold across preset revisions
+BOUND = {**PLAIN, "set": ["sac.critic_layer_norm=true"]}
 
 
 def _record(algorithm="drop", live=True, dataset="abc", final=7.0, setting=PLAIN):
@@ -101,7 +103,7 @@ def test_a_setting_shows_the_runs_of_its_config_whichever_setting_recorded_them(
 
     assert paper_table.shown(records, revision_5, "likelihood-100000") == [ablation_drop]
     text = paper_table.carried([ablation_drop], {**PLAIN, "revision": 5})
-    assert "1 of these model-based runs" in text and "revision 4 with sac.value_bound=true" in text
+    assert "1 of these model-based runs" in text and "revision 4 with sac.critic_layer_norm=true" in text
     assert paper_table.carried([ablation_drop], BOUND) == ""
 
 
@@ -116,10 +118,12 @@ def test_a_recorded_run_is_shown_before_the_run_derived_from_it():
 
 @pytest.mark.parametrize("change, matches", [
     ({}, True),
-    ({"sac.value_bound": True}, False),
+    ({"sac.critic_layer_norm": True}, False),
     ({"drop": "sac.actor_average"}, True),  # a field added since, at its default
-    ({"drop": "sac.value_bound", "wanted": {"sac.value_bound": True}}, False),  # added since, but not at its default
+    ({"drop": "sac.critic_layer_norm", "wanted": {"sac.critic_layer_norm": True}}, False),  # added, not at default
     ({"sac.removed_option": 1}, False),  # a field the engine no longer has
+    ({"semantics": 0}, False),  # an option meant something else then
+    ({"drop": "semantics"}, False),  # a record of before semantics were recorded
 ])
 def test_same_config(change, matches):
     wanted = paper_table.setting_config(PLAIN)("hopper", "medium", "drop")
@@ -136,7 +140,48 @@ def test_a_config_leaves_out_only_speed_and_disk():
                                                              overrides=overrides)) == base
     assert paper_table.identity(paper_table.build_config("drop", env="hopper", task="medium",
                                                          overrides={"log_every": 100})) != base
-    assert base["sac.bc_weight"] == 0.4 and base["penalty.eta"] == 5.0 and "seed" not in base
+    assert base["penalty.eta"] == 5.0 and base["semantics"] == paper_table.SEMANTICS and "seed" not in base
+
+
+def test_a_finished_run_directory_of_another_config_is_refused(tmp_path):
+    cfg = paper_table.build_config("drop", env="hopper", task="medium")
+    done = tmp_path / "result.json"
+    done.write_text('{"final": 1.0}')  # finished before configs were recorded: the directory's setting ran it
+    assert paper_table.finished(done, cfg)["config"] == paper_table.identity(cfg)
+    assert paper_table.finished(done, None) == {"final": 1.0}  # behaviour cloning has no config
+    done.write_text(json.dumps({"final": 1.0, "config": paper_table.identity(cfg)}))
+    assert paper_table.finished(done, cfg)["final"] == 1.0
+    with pytest.raises(SystemExit, match="without a revision bump"):
+        paper_table.finished(done, paper_table.build_config("drop", env="hopper", task="medium",
+                                                            overrides={"sac.critic_layer_norm": True}))
+
+
+def test_the_report_shows_each_row_by_the_settings_configs(tmp_path, capsys):
+    """`--report` end to end on a file: the plain table shows its runs and the clone's; the ablation's table shows
+    only the runs of its config, under its own name, and not the plain rows it has no run on."""
+    records = [
+        {**_record(final=4.0), "setting": PLAIN},
+        {**_record(algorithm="mbpo", final=6.0), "setting": PLAIN},
+        {**_record(final=5.0, setting=BOUND), "setting": BOUND},
+        {**_record(algorithm="bc", final=2.0), "best": 2.0, "bc": "likelihood-100000", "setting": PLAIN},
+        {**_record(final=9.0), "kind": "random", "setting": PLAIN,
+         "config": paper_table.setting_config(PLAIN)("hopper", "random", "drop")},
+        # a run of the ablation's from before configs were recorded: it shows nowhere, and makes no row
+        {**{k: v for k, v in _record(final=8.0).items() if k != "config"}, "kind": "random", "setting": BOUND},
+    ]
+    (tmp_path / "paper_table.json").write_text(json.dumps({
+        "behaviour": {"hopper-medium": {"score": 3.0, "dataset": "abc"}, "hopper-random": {"score": 1.0,
+                                                                                          "dataset": "abc"}},
+        "records": records}))
+    assert paper_table.main(["--report", "--out", str(tmp_path)]) == 0
+    plain = (tmp_path / "paper_table.md").read_text().splitlines()
+    assert any(line.startswith("| hopper-medium | 3.0 | 2.0 ± 0.0 (n=1) | 2.0 ± 0.0 (n=1) | 6.0 ± 0.0 (n=1)")
+               and "4.0 ± 0.0 (n=1) |" in line for line in plain)
+    assert any(line.startswith("| hopper-random | 1.0 | - | - | - | - | - | - | 9.0") for line in plain)
+    assert paper_table.main(["--report", "--out", str(tmp_path), "--set", "sac.critic_layer_norm=true"]) == 0
+    ablation = (tmp_path / "paper_table_sac.critic_layer_norm-true.md").read_text()
+    assert "| hopper-medium | 3.0 | 2.0 ± 0.0 (n=1) | 2.0 ± 0.0 (n=1) | - | - | - | - | 5.0 ± 0.0 (n=1)" in ablation
+    assert "hopper-random" not in ablation
 
 
 def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
