@@ -141,11 +141,19 @@ def checkpoints_page(s: Session, owner: str, job_id: str, settings: Settings) ->
     return page([schemas.checkpoint(r) for r in rows if from_stored(settings, r.path).is_file()], False)
 
 
+def _policy_path(folder: Path, which: Which, name: str) -> Path:
+    path = folder / which / name
+    if which == "last" and not path.is_file() and (folder / name).is_file():
+        return folder / name  # a job that succeeded before runs exported both policies kept its only one here
+    return path
+
+
 def policy_file(s: Session, owner: str, job_id: str, which: Which, fmt: PolicyFormat,
                 settings: Settings) -> tuple[Path, str]:
     """(path, media type) of the job's `which` policy in format `fmt`: 409 `policy_not_ready` while the job may still
     succeed, 409 `job_not_succeeded` once it failed or was cancelled (a script that waits on the first must stop on the
-    second), 404 if that file is missing."""
+    second). 404 `policy_format_unavailable` for an ONNX file the export could not write (best effort: the job's
+    events say why, and the other formats are there); 404 `policy_file_missing` for a file gone from the server."""
     row = owned_job(s, owner, job_id)
     if row.status in (JobStatus.FAILED, JobStatus.CANCELLED):
         raise Problem(409, "job_not_succeeded", f"job {job_id} is {row.status}: it has no policy and will have none")
@@ -153,9 +161,11 @@ def policy_file(s: Session, owner: str, job_id: str, which: Which, fmt: PolicyFo
         raise Problem(409, "policy_not_ready", f"job {job_id} is {row.status}; its policy is ready once it succeeds")
     name, media = POLICY_FILES[fmt]
     folder = job_dir(settings, job_id) / "policy"
-    path = folder / which / name
-    if which == "last" and not path.is_file():
-        path = folder / name  # a job that succeeded before runs exported both policies kept its only one here
+    path = _policy_path(folder, which, name)
     if not path.is_file():
-        raise Problem(404, "not_found", f"job {job_id} has no {fmt} file for its {which} policy")
+        if fmt == "onnx" and _policy_path(folder, which, POLICY_FILES["torchscript"][0]).is_file():
+            raise Problem(404, "policy_format_unavailable", f"job {job_id}'s {which} policy has no ONNX file: its "
+                          "export to ONNX failed (the job's events say why); format=torchscript or state_dict has it")
+        raise Problem(404, "policy_file_missing", f"job {job_id} succeeded, but the {fmt} file of its {which} policy "
+                      "is no longer on the server")
     return path, media

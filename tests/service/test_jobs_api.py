@@ -119,3 +119,33 @@ def test_a_policy_is_awaited_while_the_job_may_succeed_and_not_after(settings):
         r = client.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best"})
         assert (r.status_code, r.json()["code"]) == (409, "job_not_succeeded"), r.text
         assert client.delete(f"/v1/datasets/{dataset_id}").status_code == 204
+
+
+def test_a_succeeded_jobs_missing_policy_file_says_which_and_why(settings):
+    """An ONNX file the best-effort export could not write is told apart from a file gone from the server; a format
+    that is there is served. The job's success is written by hand: nothing trains."""
+    from sqlalchemy import update
+
+    from drop_engine.policy_files import FILE_NAMES
+    from kernel.models import Job
+    from kernel.storage import job_dir
+
+    from .datasets import tiny_npz
+    from .private_api import private_api
+
+    with private_api(settings) as (app, client):
+        dataset_id = client.post("/v1/datasets", content=tiny_npz(1)).json()["id"]
+        job = client.post("/v1/jobs", json={"dataset_id": dataset_id, "env": "hopper", "preset": "smoke"}).json()
+        with app.state.sessions.begin() as s:
+            s.execute(update(Job).where(Job.id == job["id"]).values(status="succeeded"))
+        last = job_dir(app.state.settings, job["id"]) / "policy" / "last"
+        last.mkdir(parents=True)
+        (last / FILE_NAMES["torchscript"]).write_bytes(b"a policy")
+        assert client.get(f"/v1/jobs/{job['id']}/policy").content == b"a policy"
+        r = client.get(f"/v1/jobs/{job['id']}/policy", params={"format": "onnx"})
+        assert (r.status_code, r.json()["code"]) == (404, "policy_format_unavailable"), r.text
+        assert "format=torchscript" in r.json()["detail"]
+        r = client.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best"})
+        assert (r.status_code, r.json()["code"]) == (404, "policy_file_missing"), r.text
+        assert "best policy is no longer on the server" in r.json()["detail"]
+        assert client.delete(f"/v1/jobs/{job['id']}").status_code == 204
