@@ -245,6 +245,22 @@ def displaced(kept: dict, behaviour: dict[str, dict]) -> list[str]:
             and (n := len(on_file(kept.get("records", []), {name: {"dataset": table_files[name]}})))]
 
 
+def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithms: list[str],
+         seeds: list[int]) -> list[str]:
+    """The runs this setting's table still lacks, dataset by dataset, each with the file they must run on: files differ
+    between CPU kinds, so this says which machine can make them."""
+    behaviour = {name: described(entry) for name, entry in kept.get("behaviour", {}).items()}
+    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), wanted, bc)}
+    lines = []
+    for env, kind in datasets:
+        missing = {algo: [str(seed) for seed in seeds if (env, kind, algo, seed) not in done] for algo in algorithms}
+        if any(missing.values()):
+            file = (behaviour.get(f"{env}-{kind}") or {}).get("dataset")
+            lines.append(f"{env}-{kind} (file {file[:8] if file else 'not made yet'}): "
+                         + "; ".join(f"{algo} {' '.join(left)}" for algo, left in missing.items() if left))
+    return lines
+
+
 def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
     def cell(scores: list[float]) -> str:
         return f"{np.mean(scores):.1f} ± {np.std(scores):.1f} (n={len(scores)})" if scores else "-"
@@ -315,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=None, help="torch threads per run (default: 1 with --jobs > 1)")
     p.add_argument("--new-file", action="store_true",
                    help="let a dataset file other than the one its table row was made on take that row over")
+    p.add_argument("--owed", action="store_true",
+                   help="only list the runs this setting's table lacks for --envs, --kinds, --algorithms and --seeds, "
+                        "with the dataset file each must run on; train nothing")
     p.add_argument("--report", action="store_true",
                    help="only rewrite this setting's table (paper_table.md; paper_table_KEY-VALUE.md with --set) "
                         "from the recorded runs; train nothing")
@@ -354,6 +373,11 @@ def main(argv: list[str] | None = None) -> int:
         (out / f"{name}.md").write_text(text)
         return text
 
+    if args.owed:
+        datasets = [(env, kind) for env in args.envs for kind in args.kinds]
+        print("\n".join(owed(kept, setting_config(same_setting, args.device), bc, datasets, args.algorithms,
+                             args.seeds)) or "nothing owed")
+        return 0
     if args.report:
         print(write())
         return 0

@@ -229,3 +229,17 @@ def test_a_file_of_another_machine_does_not_take_a_row_over():
     assert paper_table.displaced(kept, local) == [
         "hopper-medium: this file is def, the table's runs (1) were made on abc"]
     assert paper_table.displaced(kept, {**local, "hopper-medium": {"score": 1.0, "dataset": "abc"}}) == []
+
+
+def test_the_runs_owed_are_those_no_shown_record_holds():
+    """A run of the setting's config on the table's file is done; one on another file, or of another config, is not;
+    a dataset without a file yet is named so."""
+    kept = {"behaviour": {"hopper-medium": {"score": 3.0, "dataset": "abc"}},
+            "records": [{**_record(), "setting": PLAIN},
+                        {**_record(algorithm="mbpo", dataset="other"), "setting": PLAIN},
+                        {**_record(algorithm="mopo", setting=BOUND), "setting": BOUND},
+                        {**_record(algorithm="bc"), "bc": "likelihood-100000", "setting": BOUND}]}
+    lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
+                             [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
+    assert lines == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
+                     "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
