@@ -47,7 +47,8 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 # 2: the cpu preset of bench/QUALITY.md (converged dynamics, behaviour term, positive DICE, no bonus).
 # 3: the behaviour term on the data actions' likelihood instead of the mean action's squared error (E23).
 # 4: the policy's entropy target no higher than the data's behaviour entropy (sac.target_entropy='data', E28).
-REVISION = 4
+# 5: the value bound on every kind, and a behaviour weight of 0.1 on medium and medium-expert data (E55, E56).
+REVISION = 5
 # A run's numbers follow from its dataset, its seed and its config, less the fields that set only its speed or what it
 # keeps on disk. Each record carries that config, so a setting (a revision, an ablation) whose config for a row is one
 # that a run already had shows that run rather than training it again. `threads` changes the float sums, not what is

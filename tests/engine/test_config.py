@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import PRESETS, TrainConfig, build_config, parse_override
+from drop_engine.config import CPU_BC_WEIGHT, PRESETS, TrainConfig, build_config, parse_override
 from drop_engine.errors import ConfigError
 
 
@@ -42,12 +42,14 @@ def test_unknown_algorithm_and_preset():
 
 def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():
     paper = build_config("drop", env="hopper", preset="paper", task="medium")
-    assert paper.sac.bc_weight == 0 and not paper.dice.positive and paper.penalty.bonus
+    assert paper.sac.bc_weight == 0 and not paper.sac.value_bound and not paper.dice.positive and paper.penalty.bonus
     assert paper.dice_discount == paper.sac.gamma
     cpu = {(algo, task): build_config(algo, env="hopper", preset="cpu", task=task)
            for algo in ("drop", "mopo", "mbpo") for task in ("medium", "medium-replay")}
-    for algo in ("drop", "mopo", "mbpo"):
-        assert cpu[algo, "medium"].sac.bc_weight > cpu[algo, "medium-replay"].sac.bc_weight > 0
+    for task in ("medium", "medium-replay"):  # alike for the three methods, by dataset kind
+        assert {(c.sac.bc_weight, c.sac.value_bound) for (_, t), c in cpu.items() if t == task} == {
+            (CPU_BC_WEIGHT[task], True)}
+    assert all(weight > 0 for weight in CPU_BC_WEIGHT.values())
     assert {c.sac.bc_action for c in cpu.values()} == {"likelihood"}
     assert {c.sac.target_entropy for c in cpu.values()} == {"data"} and paper.sac.target_entropy == -3.0
     drop = build_config("drop", env="hopper", preset="cpu", task="medium")
