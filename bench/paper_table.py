@@ -22,6 +22,7 @@ import functools
 import hashlib
 import json
 import os
+import platform
 import subprocess
 import sys
 import time
@@ -51,8 +52,8 @@ CACHE = Path(os.environ.get("DROP_BENCH_DATA", Path.home() / ".cache/drop-rl/ben
 REVISION = 5
 # A run's numbers follow from its dataset, its seed and its config, less the fields that set only its speed or what it
 # keeps on disk. Each record carries that config, so a setting (a revision, an ablation) whose config for a row is one
-# that a run already had shows that run rather than training it again. `threads` changes the float sums, not what is
-# computed; records name it beside the config.
+# that a run already had shows that run rather than training it again. `threads` and the CPU change the float sums,
+# not what is computed; records name both beside the config.
 NOT_IDENTITY = {"seed", "threads", "keep_checkpoints"}
 # Bumped when an existing option's meaning changes (as the value bound's did in ba8b4a7), and part of every run's
 # identity: runs of the old meaning then match no setting.
@@ -135,6 +136,17 @@ def code_version(root: Path) -> dict:
     return {"commit": commit, "changes": digest.hexdigest()[:16] if diff or new else None}
 
 
+def cpu_kind() -> str:
+    """The CPU a run's floats were summed on: the same file, seed and config give other numbers, and other times, on
+    another kind of CPU (QUALITY.md E9, E22), so a record names it beside its thread count."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    model = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), None)
+    return f"{model or platform.processor() or platform.machine()} ({torch.backends.cpu.get_cpu_capability()})"
+
+
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:
     name = f"bc-{bc_setting(args.bc_steps)}" if algorithm == "bc" else algorithm
     run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{name}-{seed}"
@@ -158,7 +170,8 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
         record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
                   "evaluations": result.evaluations, "dynamics": result.dynamics, "config": identity(cfg)}
     record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
-                   "seconds": time.perf_counter() - start, "code": args.code, "threads": torch.get_num_threads()})
+                   "seconds": time.perf_counter() - start, "code": args.code, "threads": torch.get_num_threads(),
+                   "cpu": cpu_kind()})
     write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
     return record
 

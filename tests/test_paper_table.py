@@ -3,6 +3,7 @@ merge, which a setting's table shows (by the config its runs had), and the code 
 import importlib.util
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -243,3 +244,28 @@ def test_the_runs_owed_are_those_no_shown_record_holds():
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
     assert lines == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
                      "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
+
+
+def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_path):
+    """End to end as the command is run: a behaviour-cloning run on a small real file, in the worker process the
+    table spawns."""
+    from drop_engine.collect import collect_transitions, random_policy
+    from drop_engine.data import load_dataset, save_hdf5
+
+    data = tmp_path / "data"
+    data.mkdir()
+    save_hdf5(data / "hopper-random.hdf5", collect_transitions("hopper", random_policy(3, seed=0), 300, seed=0),
+              {"env_name": "Hopper-v4", "dataset_normalized_score": 1.5})
+    argv = ["--data", str(data), "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--envs", "hopper",
+            "--kinds", "random", "--algorithms", "bc", "--seeds", "0", "--bc-steps", "5", "--episodes", "1",
+            "--jobs", "2"]
+    script = [sys.executable, str(Path(paper_table.__file__))]
+    subprocess.run([*script, *argv], check=True, capture_output=True)
+    [record] = json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"]
+    assert record["dataset"] == load_dataset(data / "hopper-random.hdf5").content_hash
+    assert (record["algorithm"], record["seed"], record["threads"]) == ("bc", 0, 1)
+    assert record["cpu"] == paper_table.cpu_kind() and record["cpu"].endswith(")")
+    assert "| hopper-random | 1.5 |" in (tmp_path / "out" / "paper_table.md").read_text()
+    # finished: read back from its directory, not trained or recorded twice
+    subprocess.run([*script, *argv], check=True, capture_output=True)
+    assert len(json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"]) == 1
