@@ -152,6 +152,14 @@ class DeletedJob(Base):
     deleted_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class DeletedDataset(Base):
+    """A dataset whose row is gone and whose folder may not be: written in the delete's transaction and removed once
+    the folder is, so the next API start removes the folder of a process killed in between (migration 0008)."""
+    __tablename__ = "deleted_datasets"
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    deleted_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class JobEvent(Base):
     __tablename__ = "job_events"
     __table_args__ = (Index("ix_job_events_job_id_id", "job_id", "id"),)

@@ -13,7 +13,7 @@ from drop_engine.data_rows import DataShape
 from kernel.fast_reads import FastReads
 from kernel.ids import is_id, new_id
 from kernel.job_state import ACTIVE, status_in
-from kernel.models import Dataset, Job
+from kernel.models import Dataset, DeletedDataset, Job
 from kernel.settings import Settings
 from kernel.storage import dataset_dir, remove_tree, to_stored, upload_dir
 
@@ -116,15 +116,19 @@ async def create(request: Request, owner: str, name: str | None, s: Session, set
 def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     """Delete the dataset, or 409 while a job uses it. The owner's lock, taken before anything is read, orders this
     against a job's creation on any backend: either the job exists first and this answers 409, or the dataset is gone
-    first and the job's creation answers 404."""
+    first and the job's creation answers 404. The row goes before the folder, and a tombstone stays until the folder is
+    gone: a crash in between leaves a folder the next API start removes, never a listed dataset without its file."""
     lock_owner(s, owner)
     row = owned_dataset(s, owner, dataset_id)
     busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, status_in(ACTIVE)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
+    s.add(DeletedDataset(id=row.id))  # until its folder is gone too (app/leftovers.py)
     s.delete(row)
     s.commit()
     remove_tree(dataset_dir(settings, dataset_id))
+    s.execute(DeletedDataset.__table__.delete().where(DeletedDataset.id == dataset_id))
+    s.commit()
 
 
 def longest_quiet_s(settings: Settings) -> float:

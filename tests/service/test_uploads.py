@@ -210,6 +210,43 @@ def test_an_api_start_removes_what_a_killed_process_left(settings, tmp_path):
         engine.dispose()
 
 
+def test_a_dataset_delete_cut_off_before_its_folder_leaves_that_folder_to_the_next_start(alice, app, settings,
+                                                                                          hopper_file, monkeypatch):
+    """Killed between the delete's commit and the folder's removal (here the removal raises), the dataset is gone from
+    the listing and its tombstone stays; the next API start removes its folder and the tombstone. A delete that is not
+    cut off leaves neither."""
+    from sqlalchemy import select
+
+    from app.datasets import service
+    from app.leftovers import sweep_abandoned
+    from kernel.models import DeletedDataset
+    from kernel.storage import dataset_dir
+
+    def tombstones() -> set[str]:
+        with app.state.sessions() as s:
+            return set(s.scalars(select(DeletedDataset.id)))
+
+    def upload() -> str:
+        r = alice.post("/v1/datasets", content=hopper_file.read_bytes(), headers={"Content-Type": "application/x-hdf5"})
+        assert r.status_code == 201, r.text
+        return r.json()["id"]
+
+    cut, whole = upload(), upload()
+    assert alice.delete(f"/v1/datasets/{whole}").status_code == 204
+    assert not dataset_dir(settings, whole).exists() and whole not in tombstones()
+
+    def killed(path):
+        raise SystemError("killed")
+
+    with monkeypatch.context() as m:
+        m.setattr(service, "remove_tree", killed)
+        assert alice.delete(f"/v1/datasets/{cut}").status_code == 500
+    assert alice.get(f"/v1/datasets/{cut}").status_code == 404
+    assert dataset_dir(settings, cut).is_dir() and cut in tombstones()
+    assert f"datasets/{cut}" in sweep_abandoned(settings, app.state.sessions)
+    assert not dataset_dir(settings, cut).exists() and cut not in tombstones()
+
+
 def test_a_dataset_is_found_where_another_machine_mounts_the_data_dir(settings, tmp_path):
     """The row holds the file's path relative to DROP_DATA_DIR, so a worker that mounts the shared volume elsewhere
     finds it; a row of before, with an absolute path, is read as it is."""
