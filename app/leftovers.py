@@ -2,27 +2,26 @@
 (`uploads/*.part`), the validator's unfinished folder (`datasets/*.part`), and the folder of a job or a dataset deleted
 by a process killed between the delete's commit and its `rmtree`.
 
-Only what has been untouched for twice `longest_quiet_s`, so another process's live upload is never taken. A job's
-folder goes only when `deleted_jobs` records its deletion, never for want of a row: an API started on the wrong
-database (another `DATABASE_URL`, a restored backup) must not take every folder it has no row for. A worker that lost
-a deleted job and still writes its stop checkpoint removes the folder itself (worker/runner.py). A dataset's
-tombstone lives only until its folder is gone, and its folder is never written again, so it needs no age."""
+Only what has been untouched for twice `longest_quiet_s`, so another process's live upload is never taken, except a
+deleted dataset's folder, which nothing writes again. A job's or a dataset's folder goes only when `deleted_jobs` or
+`deleted_datasets` records its deletion, never for want of a row: an API started on the wrong database (another
+`DATABASE_URL`, a restored backup) must not take every folder it has no row for. A worker that lost a deleted job and
+still writes its stop checkpoint removes the folder itself (worker/runner.py)."""
 from __future__ import annotations
 
-import functools
 import logging
 import time
 from pathlib import Path
 
-from sqlalchemy import delete, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.ids import is_id
 from kernel.models import DeletedDataset, DeletedJob
 from kernel.settings import Settings
-from kernel.storage import dataset_dir, remove_tree, upload_dir
+from kernel.storage import remove_tree, upload_dir
 
-from .datasets.service import longest_quiet_s
+from .datasets.service import longest_quiet_s, remove_deleted_folders
 
 log = logging.getLogger("drop.api")
 
@@ -48,17 +47,8 @@ def _deleted_jobs(sessions: sessionmaker[Session], folders: list[Path]) -> list[
 
 
 def _deleted_datasets(settings: Settings, sessions: sessionmaker[Session]) -> list[Path]:
-    """Remove the folders that dataset deletes left behind, then the tombstones of every folder now gone."""
     with sessions() as s:
-        ids = list(s.scalars(select(DeletedDataset.id)))
-    left = [folder for folder in map(functools.partial(dataset_dir, settings), ids) if folder.exists()]
-    for folder in left:
-        remove_tree(folder)
-    gone = [dataset_id for dataset_id in ids if not dataset_dir(settings, dataset_id).exists()]
-    with sessions.begin() as s:
-        for start in range(0, len(gone), 500):  # under SQLite's limit on bound parameters
-            s.execute(delete(DeletedDataset).where(DeletedDataset.id.in_(gone[start:start + 500])))
-    return left
+        return remove_deleted_folders(s, settings, list(s.scalars(select(DeletedDataset.id))))
 
 
 def sweep_abandoned(settings: Settings, sessions: sessionmaker[Session]) -> list[str]:
@@ -73,7 +63,8 @@ def sweep_abandoned(settings: Settings, sessions: sessionmaker[Session]) -> list
             remove_tree(path)
         else:
             path.unlink(missing_ok=True)
-    names = sorted(str(p.relative_to(settings.data_dir)) for p in parts + jobs + _deleted_datasets(settings, sessions))
+    datasets = _deleted_datasets(settings, sessions)
+    names = sorted(str(p.relative_to(settings.data_dir)) for p in parts + jobs + datasets)
     if names:
         log.info("removed %d leftovers of killed processes: %s", len(names), ", ".join(names))
     return names

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 spec = importlib.util.spec_from_file_location("paper_table", Path(__file__).parents[1] / "bench" / "paper_table.py")
 paper_table = importlib.util.module_from_spec(spec)
@@ -258,14 +259,16 @@ def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_p
               {"env_name": "Hopper-v4", "dataset_normalized_score": 1.5})
     argv = ["--data", str(data), "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--envs", "hopper",
             "--kinds", "random", "--algorithms", "bc", "--seeds", "0", "--bc-steps", "5", "--episodes", "1",
-            "--jobs", "2"]
+            "--jobs", "2", "--model-cache", str(tmp_path / "models")]
     script = [sys.executable, str(Path(paper_table.__file__))]
-    subprocess.run([*script, *argv], check=True, capture_output=True)
+    ran = subprocess.run([*script, *argv], capture_output=True, text=True)
+    assert ran.returncode == 0, ran.stderr
+    assert "hopper-random bc seed 0: final" in ran.stdout
     [record] = json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"]
     assert record["dataset"] == load_dataset(data / "hopper-random.hdf5").content_hash
     assert (record["algorithm"], record["seed"], record["threads"]) == ("bc", 0, 1)
-    assert record["cpu"] == paper_table.cpu_kind() and record["cpu"].endswith(")")
+    assert record["cpu"].endswith(f" ({torch.backends.cpu.get_cpu_capability()})") and len(record["cpu"]) > 10
     assert "| hopper-random | 1.5 |" in (tmp_path / "out" / "paper_table.md").read_text()
-    # finished: read back from its directory, not trained or recorded twice
-    subprocess.run([*script, *argv], check=True, capture_output=True)
-    assert len(json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"]) == 1
+    again = subprocess.run([*script, *argv], capture_output=True, text=True)  # recorded: not trained again
+    assert again.returncode == 0 and "seed 0: final" not in again.stdout, again.stderr
+    assert json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"] == [record]

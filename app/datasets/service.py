@@ -2,6 +2,7 @@
 datasets, and a delete that cannot pass a job being created on the same dataset."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from fastapi import Request
@@ -25,6 +26,8 @@ from ..owners.lock import lock_owner
 from .schemas import dataset as dataset_dict
 from .upload import Upload, receive
 from .validate import Invalid
+
+log = logging.getLogger("drop.api")
 
 DATASET = select(Dataset.__table__).where(Dataset.id == bindparam("dataset_id"),
                                           Dataset.owner_id == bindparam("owner"))
@@ -123,12 +126,28 @@ def delete(s: Session, owner: str, dataset_id: str, settings: Settings) -> None:
     busy = s.scalar(select(Job.id).where(Job.dataset_id == dataset_id, status_in(ACTIVE)).limit(1))
     if busy:
         raise Problem(409, "dataset_in_use", f"dataset {dataset_id} is used by job {busy}, which has not finished")
-    s.add(DeletedDataset(id=row.id))  # until its folder is gone too (app/leftovers.py)
+    s.add(DeletedDataset(id=row.id))  # until its folder is gone too
     s.delete(row)
     s.commit()
-    remove_tree(dataset_dir(settings, dataset_id))
-    s.execute(DeletedDataset.__table__.delete().where(DeletedDataset.id == dataset_id))
+    try:
+        remove_deleted_folders(s, settings, [dataset_id])
+    except Exception:  # the dataset is deleted: its tombstone stays, and the next API start removes the folder
+        log.warning("dataset %s: deleted, but its folder was not removed", dataset_id, exc_info=True)
+
+
+def remove_deleted_folders(s: Session, settings: Settings, ids: list[str]) -> list[Path]:
+    """Remove the folders of deleted datasets, then the tombstones of those now gone. A tombstone whose folder was not
+    there stays: on a DROP_DATA_DIR other than the one the delete used (a volume not mounted) every folder looks gone,
+    and dropping their tombstones would leak the real ones for good."""
+    found = [folder for folder in (dataset_dir(settings, dataset_id) for dataset_id in ids) if folder.exists()]
+    for folder in found:
+        remove_tree(folder)
+    removed = [folder for folder in found if not folder.exists()]  # rmtree ignores what it could not remove
+    for start in range(0, len(removed), 500):  # under SQLite's limit on bound parameters
+        names = [folder.name for folder in removed[start:start + 500]]
+        s.execute(DeletedDataset.__table__.delete().where(DeletedDataset.id.in_(names)))
     s.commit()
+    return removed
 
 
 def longest_quiet_s(settings: Settings) -> float:
