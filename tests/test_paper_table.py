@@ -261,7 +261,7 @@ def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_p
             "--kinds", "random", "--algorithms", "bc", "--seeds", "0", "--bc-steps", "5", "--episodes", "1",
             "--jobs", "2", "--model-cache", str(tmp_path / "models")]
     script = [sys.executable, str(Path(paper_table.__file__))]
-    ran = subprocess.run([*script, *argv], capture_output=True, text=True)
+    ran = subprocess.run([*script, *argv], capture_output=True, text=True, timeout=600)
     assert ran.returncode == 0, ran.stderr
     assert "hopper-random bc seed 0: final" in ran.stdout
     [record] = json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"]
@@ -269,6 +269,6 @@ def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_p
     assert (record["algorithm"], record["seed"], record["threads"]) == ("bc", 0, 1)
     assert record["cpu"].endswith(f" ({torch.backends.cpu.get_cpu_capability()})") and len(record["cpu"]) > 10
     assert "| hopper-random | 1.5 |" in (tmp_path / "out" / "paper_table.md").read_text()
-    again = subprocess.run([*script, *argv], capture_output=True, text=True)  # recorded: not trained again
+    again = subprocess.run([*script, *argv], capture_output=True, text=True, timeout=600)  # recorded: not trained again
     assert again.returncode == 0 and "seed 0: final" not in again.stdout, again.stderr
     assert json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"] == [record]
