@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import tempfile
 import time
@@ -26,6 +25,7 @@ from drop_engine.dynamics import GaussianEnsemble, train_dynamics
 from drop_engine.evaluation import evaluate
 from drop_engine.replay_buffer import ReplayBuffer
 from drop_engine.rollout import model_rollout
+from drop_engine.seeding import cpu_kind
 from drop_engine.trainer import Trainer
 
 
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as work:
         rows = [bench_threads(data, t, device, Path(work)) for t in args.threads]
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": platform.processor() or platform.machine(),
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": cpu_kind(),
             "torch": torch.__version__, "python": sys.version.split()[0], "transitions": len(data)}
     name = "engine_speed" + (f"_{args.tag}" if args.tag else "") + ("_cuda" if device.type == "cuda" else "")
     (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))

@@ -22,7 +22,6 @@ import functools
 import hashlib
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -39,6 +38,7 @@ from drop_engine.config import TrainConfig, build_config, parse_override
 from drop_engine.data import load_dataset
 from drop_engine.run_log import RunLog
 from drop_engine.scores import FINAL_WINDOW, summarize
+from drop_engine.seeding import cpu_kind
 from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
@@ -134,17 +134,6 @@ def code_version(root: Path) -> dict:
     except (OSError, UnicodeError, subprocess.CalledProcessError):
         return {"commit": None, "changes": None}
     return {"commit": commit, "changes": digest.hexdigest()[:16] if diff or new else None}
-
-
-def cpu_kind() -> str:
-    """The CPU a run's floats were summed on: the same file, seed and config give other numbers, and other times, on
-    another kind of CPU (QUALITY.md E9, E22), so a record names it beside its thread count."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        lines = []
-    model = next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), None)
-    return f"{model or platform.processor() or platform.machine()} ({torch.backends.cpu.get_cpu_capability()})"
 
 
 def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, runs: Path) -> dict:

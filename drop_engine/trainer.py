@@ -43,7 +43,7 @@ from .replay_buffer import ReplayBuffer
 from .rollout import model_rollout
 from .sac import SAC, Actor
 from .scores import Which, summarize
-from .seeding import load_rng_state, rng_state, seed_everything
+from .seeding import load_rng_state, machine, rng_state, seed_everything
 from .stopping import Stopped, check
 
 ONCE = ("dynamics", "behaviour_fit")  # timed phases before the first epoch, not per epoch
@@ -66,6 +66,7 @@ class TrainResult:
     dynamics: dict | None = None  # the DynamicsReport, and where the model came from: cache_key, from_cache, cache_path
     timings: dict[str, float] = field(default_factory=dict)
     checkpoint: str | None = None  # where a stopped run resumes from; None if it stopped before writing any
+    machine: dict = field(default_factory=dict)  # seeding.machine() of the process that ended the run
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -488,7 +489,7 @@ class Trainer:
             last_return=last["return"] if last else None, **asdict(summarize(self._scores())),
             evaluations=list(self.evaluations), policy=policy,
             dynamics={**asdict(self.dynamics_report), **(self.dynamics_source or {})} if self.dynamics_report else None,
-            timings=dict(self.timings), checkpoint=checkpoint,
+            timings=dict(self.timings), checkpoint=checkpoint, machine=machine(),
         )
 
 

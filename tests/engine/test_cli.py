@@ -1,6 +1,8 @@
 """`drop train` and `drop evaluate` as a newcomer runs them."""
 import json
 
+import torch
+
 from drop_engine.cli import main
 from drop_engine.data import save_hdf5
 
@@ -21,6 +23,9 @@ def test_train_then_evaluate(tmp_path, hopper_arrays, capsys, monkeypatch):
     assert printed["status"] == "completed" and printed["epochs"] == 1 and printed["dynamics_from_cache"] is False
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["evaluations"][0]["epoch"] == 1
+    # What else made its numbers: the same seed sums in another order at another thread count or on another CPU kind.
+    assert summary["machine"]["threads"] == 1 and summary["machine"]["torch"] == torch.__version__
+    assert summary["machine"]["cpu"].endswith(f" ({torch.backends.cpu.get_cpu_capability()})")
     assert summary["dynamics"]["cache_path"].startswith(str(tmp_path / "home" / ".cache" / "drop-rl" / "models"))
     assert train("again")["dynamics_from_cache"] is True
     assert train("elsewhere", "--model-cache", str(tmp_path / "models"))["dynamics_from_cache"] is False
