@@ -239,6 +239,7 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int, 
     import torch
 
     from .collect import collect_datasets, summary_table
+    from .file_lock import Busy
 
     torch.set_num_threads(threads)
     chosen = tuple(kinds.split(",")) if kinds else KINDS
@@ -265,6 +266,9 @@ def collect(env: str, out: str, seed: int, steps: int | None, transitions: int, 
     except ValueError as exc:
         print(f"drop collect: {exc}", file=sys.stderr)
         return 2
+    except Busy as exc:
+        print(f"drop collect: {exc}", file=sys.stderr)
+        return 75  # EX_TEMPFAIL: the same command succeeds once the other collection ends
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -20,6 +20,7 @@ import torch
 from .collect_config import KINDS, CollectConfig
 from .data import from_arrays, save_hdf5
 from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
+from .file_lock import Busy, exclusive
 from .online import OnlineSAC, actor_fn
 from .stopping import Stopped, check
 
@@ -205,10 +206,22 @@ def collect_datasets(cfg: CollectConfig, out_dir: str | Path, kinds: tuple[str, 
     """Train (or resume) online SAC under `out_dir/<env>-sac/`, then write `out_dir/<env>-<kind>.hdf5` for `kinds`.
 
     Returns one summary row per kind, or None when `should_stop` interrupted training (its checkpoint is saved).
+    Raises `Busy` if another process is collecting the same env into `out_dir`: both would write one checkpoint and
+    the same files.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    agent = OnlineSAC(cfg.online, out / f"{cfg.online.env}-sac")
+    sac_dir = out / f"{cfg.online.env}-sac"
+    try:
+        with exclusive(sac_dir / "collect.lock"):
+            return _collect(cfg, out, sac_dir, kinds, progress, should_stop)
+    except Busy:
+        raise Busy(f"another collection of {cfg.online.env} is writing into {out}; wait for it to end, or use "
+                   "another --out") from None
+
+
+def _collect(cfg: CollectConfig, out: Path, sac_dir: Path, kinds: tuple[str, ...], progress: bool,
+             should_stop: Callable[[], bool] | None) -> list[dict] | None:
+    agent = OnlineSAC(cfg.online, sac_dir)
     try:
         if set(kinds) <= {"random"}:  # the untrained actor: no need to wait for online training
             agent.begin()

@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 import warnings
-from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import torch
 
@@ -22,10 +20,10 @@ from .atomic import save_durably
 from .config import DynamicsConfig
 from .data import Dataset
 from .dynamics import DynamicsReport, GaussianEnsemble
-from .stopping import StopFlag, check
+from .file_lock import exclusive
+from .stopping import StopFlag
 
 FORMAT = 1  # bump when the artifact or the way an ensemble is built or trained changes: old files become misses
-LOCK_POLL_S = 0.5
 
 
 def model_key(data: Dataset, cfg: DynamicsConfig, seed: int, device: str = "cpu") -> str:
@@ -43,29 +41,6 @@ class ModelCache:
 
     def path(self, key: str) -> Path:
         return self.directory / f"{key}.pt"
-
-    @contextmanager
-    def _locked(self, key: str, should_stop: StopFlag) -> Iterator[None]:
-        """Hold the key's lock; raises `Stopped`, without it, if `should_stop` turns true while another process has it.
-
-        Polled rather than blocking so a run waiting for another one's training can still be cancelled. Lock files
-        are never removed: removing one would let two processes hold "the" lock on different files. `fcntl` is imported
-        here, so the engine without a cache runs where POSIX locks do not exist."""
-        import fcntl
-
-        self.directory.mkdir(parents=True, exist_ok=True)
-        with open(self.directory / f"{key}.lock", "a") as handle:
-            while True:
-                try:
-                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    check(should_stop)
-                    time.sleep(LOCK_POLL_S)
-            try:
-                yield
-            finally:
-                fcntl.flock(handle, fcntl.LOCK_UN)
 
     def load(self, key: str, model: GaussianEnsemble) -> DynamicsReport | None:
         """The stored report, with `model` loaded; None (model untouched) if there is no usable file."""
@@ -91,7 +66,7 @@ class ModelCache:
                        should_stop: StopFlag) -> tuple[DynamicsReport, bool]:
         """(report, from_cache): the stored model, or `fit()` trains `model` and it is stored. `Stopped`, from the
         wait for another process's lock or from `fit`, goes through and stores nothing."""
-        with self._locked(key, should_stop):
+        with exclusive(self.directory / f"{key}.lock", should_stop):
             report = self.load(key, model)
             if report is not None:
                 return report, True

@@ -1,6 +1,8 @@
 """`drop collect`: online SAC in the real hopper, the five D4RL kinds, validation, resume. Short runs, small nets."""
 from __future__ import annotations
 
+import fcntl
+
 import h5py
 import numpy as np
 import pytest
@@ -217,3 +219,19 @@ def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
     assert (out / "hopper-medium-expert.hdf5").stat().st_mtime_ns != stale
     assert read_arrays(out / "hopper-medium-expert.hdf5")[1]["policy_steps"].tolist() == steps.tolist()
     assert main([*args[:-1], "--kinds", "nonsense"]) == 2
+
+
+def test_a_second_collection_of_the_same_env_and_out_is_refused(tmp_path, capsys):
+    """Two collections of one env into one directory would write one checkpoint through one temporary name: the
+    second is refused at once, before it touches anything, and may run once the first has ended."""
+    out = tmp_path / "out"
+    args = ["collect", "--env", "hopper", "--out", str(out), "--steps", "250", "--warmup", "200", "--eval-every", "125",
+            "--eval-episodes", "1", "--transitions", "200", "--kinds", "random", "--no-progress"]
+    (out / "hopper-sac").mkdir(parents=True)
+    with open(out / "hopper-sac" / "collect.lock", "a") as first:  # another open file: as another process's flock
+        fcntl.flock(first, fcntl.LOCK_EX)
+        assert main(args) == 75
+        assert "another collection of hopper is writing into" in capsys.readouterr().err
+        assert sorted(p.name for p in out.rglob("*")) == ["collect.lock", "hopper-sac"]
+    assert main(args) == 0
+    assert (out / "hopper-random.hdf5").is_file()
