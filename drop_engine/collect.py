@@ -20,7 +20,7 @@ import torch
 from .collect_config import KINDS, CollectConfig
 from .data import from_arrays, save_hdf5
 from .envs import DEFAULT_VERSION, EnvVersion, get_env, make_env
-from .file_lock import Busy, exclusive
+from .file_lock import exclusive
 from .online import OnlineSAC, actor_fn
 from .stopping import Stopped, check
 
@@ -211,12 +211,9 @@ def collect_datasets(cfg: CollectConfig, out_dir: str | Path, kinds: tuple[str, 
     """
     out = Path(out_dir)
     sac_dir = out / f"{cfg.online.env}-sac"
-    try:
-        with exclusive(sac_dir / "collect.lock"):
-            return _collect(cfg, out, sac_dir, kinds, progress, should_stop)
-    except Busy:
-        raise Busy(f"another collection of {cfg.online.env} is writing into {out}; wait for it to end, or use "
-                   "another --out") from None
+    busy = f"another collection of {cfg.online.env} is writing into {out}; wait for it to end, or use another --out"
+    with exclusive(sac_dir / "collect.lock", busy=busy):
+        return _collect(cfg, out, sac_dir, kinds, progress, should_stop)
 
 
 def _collect(cfg: CollectConfig, out: Path, sac_dir: Path, kinds: tuple[str, ...], progress: bool,

@@ -19,9 +19,10 @@ class Busy(RuntimeError):
 
 
 @contextmanager
-def exclusive(path: str | Path, should_stop: StopFlag | None = None) -> Iterator[None]:
+def exclusive(path: str | Path, should_stop: StopFlag | None = None, busy: str | None = None) -> Iterator[None]:
     """Hold the lock at `path` (its directory is made). With `should_stop`, wait for it, polling so that the waiter can
-    still be cancelled (`Stopped`); without, raise `Busy` at once if another process has it."""
+    still be cancelled (`Stopped`); without, raise `Busy` at once if another process has it, with the caller's `busy`
+    message when given (it knows what the lock guards)."""
     import fcntl
 
     path = Path(path)
@@ -33,7 +34,7 @@ def exclusive(path: str | Path, should_stop: StopFlag | None = None) -> Iterator
                 break
             except BlockingIOError:
                 if should_stop is None:
-                    raise Busy(f"{path} is held by another process") from None
+                    raise Busy(busy or f"{path} is held by another process") from None
                 check(should_stop)
                 time.sleep(POLL_S)
         try:
