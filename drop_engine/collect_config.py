@@ -42,13 +42,17 @@ class OnlineConfig:
 
     def identity(self) -> dict:
         """The settings a resumed run must share with the checkpoint (steps may grow: training just continues), and
-        the torch thread count in use: another one sums in another order and makes other files (QUALITY.md E22)."""
+        the machine in use: another thread count or CPU kind sums in another order and makes other files (QUALITY.md
+        E22, E62), so a checkpoint carried to another machine does not resume into files the table refuses."""
         import torch
+
+        from .seeding import cpu_kind
 
         out = asdict(self)
         out.pop("steps")
         out["sac"] = self.sac.model_dump()
         out["threads"] = torch.get_num_threads()
+        out["cpu"] = cpu_kind()
         return out
 
 

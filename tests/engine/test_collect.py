@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import drop_engine.collect
+from drop_engine import seeding
 from drop_engine.cli import main
 from drop_engine.collect import collect_datasets, collect_transitions, random_policy, read_arrays
 from drop_engine.collect_config import KINDS, CollectConfig, OnlineConfig
@@ -156,7 +157,7 @@ def _params(agent: OnlineSAC) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in agent.sac.parameters()])
 
 
-def test_resume_continues_the_same_run(tmp_path):
+def test_resume_continues_the_same_run(tmp_path, monkeypatch):
     """Stopped mid-episode and restarted, the run picks up at its checkpoint and ends exactly where an uninterrupted
     one does (networks, optimiser moments, replay, env physics and RNGs all restored)."""
     cfg = small_online(steps=700, warmup=200, eval_every=350)
@@ -192,6 +193,10 @@ def test_resume_continues_the_same_run(tmp_path):
             OnlineSAC(cfg, tmp_path / "b")
     finally:
         torch.set_num_threads(threads)
+    # On another kind of CPU the checkpoint would resume into other files (QUALITY.md E62).
+    monkeypatch.setattr(seeding, "cpu_kind", lambda: "Another CPU (AVX2)")
+    with pytest.raises(ValueError, match=r"different settings \(cpu\)"):
+        OnlineSAC(cfg, tmp_path / "b")
 
 
 def test_cli_collect_writes_summary_and_resumes(tmp_path, capsys):
