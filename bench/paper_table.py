@@ -36,9 +36,11 @@ from drop_engine.atomic import write_text
 from drop_engine.bc import evaluate_actor, train_bc
 from drop_engine.config import TrainConfig, build_config, parse_override
 from drop_engine.data import load_dataset
+from drop_engine.file_lock import Busy, exclusive
 from drop_engine.run_log import RunLog
 from drop_engine.scores import FINAL_WINDOW, summarize
 from drop_engine.seeding import cpu_kind
+from drop_engine.stopping import never
 from drop_engine.trainer import train
 
 ALGORITHMS = ("bc", "mbpo", "mopo", "drop")
@@ -143,6 +145,24 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
     cfg = None if algorithm == "bc" else build_config(
         algorithm, env=env, preset=args.preset, task=kind, overrides=dict(parse_override(kv) for kv in args.set),
         seed=seed, device=args.device)
+    if done.exists():
+        return finished(done, cfg)
+    # Another invocation may list the same run (each lists its runs at start): it trains it while this one waits, then
+    # this one takes its record. Two processes resuming one checkpoint would interleave their writes (QUALITY.md E63).
+    lock = run_dir.with_name(run_dir.name + ".lock")
+    try:
+        with exclusive(lock):
+            return train_one(data_path, dataset, env, kind, algorithm, seed, args, run_dir, cfg)
+    except Busy:
+        print(f"{run_dir}: another invocation is training this run; waiting for its result", flush=True)
+    with exclusive(lock, should_stop=never):
+        return train_one(data_path, dataset, env, kind, algorithm, seed, args, run_dir, cfg)
+
+
+def train_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, run_dir: Path,
+              cfg: TrainConfig | None) -> dict:
+    """`run_one`'s run, under its lock: taken from its result if a run that held the lock before finished it."""
+    done = run_dir / "result.json"
     if done.exists():
         return finished(done, cfg)
     run_dir.mkdir(parents=True, exist_ok=True)

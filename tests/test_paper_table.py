@@ -272,3 +272,31 @@ def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_p
     again = subprocess.run([*script, *argv], capture_output=True, text=True, timeout=600)  # recorded: not trained again
     assert again.returncode == 0 and "seed 0: final" not in again.stdout, again.stderr
     assert json.loads((tmp_path / "out" / "paper_table.json").read_text())["records"] == [record]
+
+
+def test_a_run_another_invocation_holds_is_waited_for_and_taken_from_its_result(tmp_path):
+    """Two invocations may list one run: the second waits on the run's lock and then reads the first's result instead
+    of resuming the same checkpoint beside it (QUALITY.md E63)."""
+    import argparse
+    import threading
+
+    from drop_engine.collect import collect_transitions, random_policy
+    from drop_engine.data import save_hdf5
+    from drop_engine.file_lock import exclusive
+
+    path = tmp_path / "hopper-random.hdf5"
+    save_hdf5(path, collect_transitions("hopper", random_policy(3, seed=0), 300, seed=0), {"env_name": "Hopper-v4"})
+    args = argparse.Namespace(bc_steps=5, episodes=1, code={"commit": None, "changes": None})
+    run_dir = tmp_path / "runs" / "hopper-random-abc" / f"bc-{paper_table.bc_setting(5)}-0"
+    theirs = {"final": 12.5, "best": 12.5, "evaluations": [], "by": "the other invocation"}
+    got = []
+    with exclusive(run_dir.with_name(run_dir.name + ".lock")):
+        waiter = threading.Thread(target=lambda: got.append(
+            paper_table.run_one(path, "abc", "hopper", "random", "bc", 0, args, tmp_path / "runs")))
+        waiter.start()
+        waiter.join(timeout=3)
+        assert waiter.is_alive() and not (run_dir / "result.json").exists()  # waiting, not training
+        run_dir.mkdir(parents=True)
+        (run_dir / "result.json").write_text(json.dumps(theirs))
+    waiter.join(timeout=60)
+    assert got == [theirs]
