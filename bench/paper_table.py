@@ -26,6 +26,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import ExitStack
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -145,44 +146,36 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
     cfg = None if algorithm == "bc" else build_config(
         algorithm, env=env, preset=args.preset, task=kind, overrides=dict(parse_override(kv) for kv in args.set),
         seed=seed, device=args.device)
-    if done.exists():
-        return finished(done, cfg)
     # Another invocation may list the same run (each lists its runs at start): it trains it while this one waits, then
     # this one takes its record. Two processes resuming one checkpoint would interleave their writes (QUALITY.md E63).
-    lock = run_dir.with_name(run_dir.name + ".lock")
-    try:
-        with exclusive(lock):
-            return train_one(data_path, dataset, env, kind, algorithm, seed, args, run_dir, cfg)
-    except Busy:
-        print(f"{run_dir}: another invocation is training this run; waiting for its result", flush=True)
-    with exclusive(lock, should_stop=never):
-        return train_one(data_path, dataset, env, kind, algorithm, seed, args, run_dir, cfg)
-
-
-def train_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, seed: int, args, run_dir: Path,
-              cfg: TrainConfig | None) -> dict:
-    """`run_one`'s run, under its lock: taken from its result if a run that held the lock before finished it."""
-    done = run_dir / "result.json"
-    if done.exists():
-        return finished(done, cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    if cfg is None:
-        data = load_dataset(data_path, env=env)
-        evaluation = evaluate_actor(train_bc(data, args.bc_steps, seed=seed), env, args.episodes, seed=10_000 + seed)
-        record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": [],
-                  "bc": bc_setting(args.bc_steps)}
-    else:
-        result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
-        if result.status != "completed":
-            raise SystemExit(f"{run_dir}: stopped before the end")
-        record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
-                  "evaluations": result.evaluations, "dynamics": result.dynamics, "config": identity(cfg)}
-    record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
-                   "seconds": time.perf_counter() - start, "code": args.code, "threads": torch.get_num_threads(),
-                   "cpu": cpu_kind()})
-    write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
-    return record
+    with ExitStack() as held:
+        lock = run_dir.with_name(run_dir.name + ".lock")
+        try:
+            held.enter_context(exclusive(lock))
+        except Busy:
+            print(f"{run_dir}: another invocation is training this run; waiting for its result", flush=True)
+            held.enter_context(exclusive(lock, should_stop=never))
+        if done.exists():
+            return finished(done, cfg)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        if cfg is None:
+            data = load_dataset(data_path, env=env)
+            actor = train_bc(data, args.bc_steps, seed=seed)
+            evaluation = evaluate_actor(actor, env, args.episodes, seed=10_000 + seed)
+            record = {"final": evaluation.normalized_score, "best": evaluation.normalized_score, "evaluations": [],
+                      "bc": bc_setting(args.bc_steps)}
+        else:
+            result = train(data_path, cfg, run_dir, RunLog(run_dir, cfg.steps_per_epoch), model_cache=args.model_cache)
+            if result.status != "completed":
+                raise SystemExit(f"{run_dir}: stopped before the end")
+            record = {"final": result.final_score, "best": result.best_score, "best_epoch": result.best_epoch,
+                      "evaluations": result.evaluations, "dynamics": result.dynamics, "config": identity(cfg)}
+        record.update({"env": env, "kind": kind, "algorithm": algorithm, "seed": seed, "dataset": dataset,
+                       "seconds": time.perf_counter() - start, "code": args.code, "threads": torch.get_num_threads(),
+                       "cpu": cpu_kind()})
+        write_text(done, json.dumps(record, indent=2))  # its presence means finished: never half a file
+        return record
 
 
 def finished(done: Path, cfg: TrainConfig | None) -> dict:
