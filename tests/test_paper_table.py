@@ -300,3 +300,19 @@ def test_a_run_another_invocation_holds_is_waited_for_and_taken_from_its_result(
         (run_dir / "result.json").write_text(json.dumps(theirs))
     waiter.join(timeout=60)
     assert got == [theirs]
+
+
+def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
+    """The difference is taken seed by seed (a seed's runs share one ensemble), only over the seeds both methods ran;
+    a steady gap with a large spread between seeds is told apart, a single seed never is."""
+    def run(algorithm, seed, final, kind="medium"):
+        return {"algorithm": algorithm, "env": "hopper", "kind": kind, "seed": seed, "final": final}
+
+    records = ([run("drop", s, f) for s, f in ((0, 10.0), (1, 40.0), (2, 70.0))]
+               + [run("mbpo", s, f) for s, f in ((0, 4.0), (1, 34.5), (2, 63.5))]  # 6, 5.5 and 6.5 under DROP
+               + [run("mopo", s, f) for s, f in ((1, 45.0), (2, 60.0))]  # no seed 0: DROP's seed 0 is left out
+               + [run("drop", 0, 9.0, "random"), run("bc", 0, 1.0, "random")])
+    text = paper_table.paired(records, ["hopper-medium", "hopper-random"])
+    assert "| hopper-medium | - | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.00) |" in text
+    assert "| hopper-random | +8.0 (n=1) | - | - |" in text
+    assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
