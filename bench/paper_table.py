@@ -2,7 +2,7 @@
 
 Reads `ENV-KIND.hdf5` from the `make bench-data` cache, trains every (dataset, algorithm, seed) not yet finished
 (an interrupted run resumes from its checkpoint), and writes the final and best D4RL normalised scores, mean and std
-over seeds, beside the behaviour policy's own score.
+over seeds, beside the behaviour policy's own score, and DROP's gap to each baseline seed by seed (`paired`).
 
     python bench/paper_table.py --envs hopper --kinds medium medium-replay --seeds 0 1 2 [--preset cpu] [--jobs 2]
 
