@@ -278,6 +278,11 @@ def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithm
     return lines
 
 
+def runs_of(records: list[dict], dataset: str, algo: str) -> list[dict]:
+    """The records of one row's method."""
+    return [r for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
+
+
 def table(records: list[dict], behaviour: dict[str, float | None], algorithms: list[str]) -> str:
     def cell(scores: list[float]) -> str:
         return f"{np.mean(scores):.1f} ± {np.std(scores):.1f} (n={len(scores)})" if scores else "-"
@@ -288,7 +293,7 @@ def table(records: list[dict], behaviour: dict[str, float | None], algorithms: l
     for dataset in behaviour:
         row = [dataset, f"{behaviour[dataset]:.1f}" if behaviour[dataset] is not None else "-"]
         for algo in algorithms:
-            runs = [r for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
+            runs = runs_of(records, dataset, algo)
             row += [cell([r["final"] for r in runs]), cell([r["best"] for r in runs])]
         lines.append("| " + " | ".join(row) + " |")
     derived = [f"{r['env']}-{r['kind']} {r['algorithm'].upper()} seed {r['seed']} ({' '.join(r['derived_from'])})"
@@ -313,7 +318,7 @@ def carried(records: list[dict], setting: dict) -> str:
 def targets(records: list[dict], datasets: list[str]) -> str:
     """The issue's bars: DROP's final against each baseline's, dataset by dataset, and DROP's runs against collapse."""
     def mean_final(dataset: str, algo: str) -> float | None:
-        scores = [r["final"] for r in records if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo]
+        scores = [r["final"] for r in runs_of(records, dataset, algo)]
         return float(np.mean(scores)) if scores else None
 
     lines = ["", "| DROP's final at least | datasets with both | met |", "|---|---|---|"]
@@ -334,8 +339,7 @@ def paired(records: list[dict], datasets: list[str]) -> str:
     standard error of the mean difference and p a paired t-test's (two-sided): at 2 or 3 seeds a gap needs 12.7 or
     4.3 standard errors for p under 0.05."""
     def finals(dataset: str, algo: str) -> dict[int, float]:
-        return {r["seed"]: r["final"] for r in records
-                if f"{r['env']}-{r['kind']}" == dataset and r["algorithm"] == algo}
+        return {r["seed"]: r["final"] for r in runs_of(records, dataset, algo)}
 
     baselines = ("bc", "mopo", "mbpo")
     lines = ["", "DROP's final minus each baseline's on the same seeds (mean ± standard error of the differences, "
@@ -352,7 +356,10 @@ def paired(records: list[dict], datasets: list[str]) -> str:
                 row.append(f"{gaps[0]:+.1f} (n=1)" if gaps else "-")
                 continue
             mean, error = float(np.mean(gaps)), float(stats.sem(gaps))
-            p = float(stats.ttest_1samp(gaps, 0.0).pvalue) if error > 0 else float(mean == 0)
+            if error > 0:
+                p = float(stats.ttest_1samp(gaps, 0.0).pvalue)
+            else:  # the same gap on every seed: the t-test's statistic is undefined (scipy: nan), the seeds agree
+                p = 1.0 if mean == 0 else 0.0
             row.append(f"{mean:+.1f} ± {error:.1f} (n={len(gaps)}, p={p:.2f})")
             if p < 0.05:
                 clear[b]["ahead" if mean > 0 else "behind"] += 1

@@ -311,8 +311,9 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
     records = ([run("drop", s, f) for s, f in ((0, 10.0), (1, 40.0), (2, 70.0))]
                + [run("mbpo", s, f) for s, f in ((0, 4.0), (1, 34.5), (2, 63.5))]  # 6, 5.5 and 6.5 under DROP
                + [run("mopo", s, f) for s, f in ((1, 45.0), (2, 60.0))]  # no seed 0: DROP's seed 0 is left out
+               + [run("bc", s, f) for s, f in ((1, 40.0), (2, 70.0))]  # DROP's own finals: no gap and no spread
                + [run("drop", 0, 9.0, "random"), run("bc", 0, 1.0, "random")])
     text = paper_table.paired(records, ["hopper-medium", "hopper-random"])
-    assert "| hopper-medium | - | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.00) |" in text
+    assert "| hopper-medium | +0.0 ± 0.0 (n=2, p=1.00) | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.00) |" in text
     assert "| hopper-random | +8.0 (n=1) | - | - |" in text
     assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
