@@ -264,16 +264,19 @@ def displaced(kept: dict, behaviour: dict[str, dict]) -> list[str]:
 
 def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithms: list[str],
          seeds: list[int]) -> list[str]:
-    """The runs this setting's table still lacks, dataset by dataset, each with the file they must run on: files differ
-    between CPU kinds, so this says which machine can make them."""
+    """The runs this setting's table still lacks, dataset by dataset, each with the file they must run on and the CPU
+    kinds whose runs are on it: files differ between CPU kinds, so this says which machine can make them."""
     behaviour = {name: described(entry) for name, entry in kept.get("behaviour", {}).items()}
-    done = {key(r) for r in shown(on_file(kept.get("records", []), behaviour), wanted, bc)}
+    records = on_file(kept.get("records", []), behaviour)
+    done = {key(r) for r in shown(records, wanted, bc)}
     lines = []
     for env, kind in datasets:
         missing = {algo: [str(seed) for seed in seeds if (env, kind, algo, seed) not in done] for algo in algorithms}
         if any(missing.values()):
             file = (behaviour.get(f"{env}-{kind}") or {}).get("dataset")
-            lines.append(f"{env}-{kind} (file {file[:8] if file else 'not made yet'}): "
+            cpus = sorted({r["cpu"] for r in records if f"{r['env']}-{r['kind']}" == f"{env}-{kind}" and "cpu" in r})
+            lines.append(f"{env}-{kind} (file {file[:8] if file else 'not made yet'}"
+                         + (f", runs made on {', '.join(cpus)}" if cpus else "") + "): "
                          + "; ".join(f"{algo} {' '.join(left)}" for algo, left in missing.items() if left))
     return lines
 

@@ -235,7 +235,7 @@ def test_a_file_of_another_machine_does_not_take_a_row_over():
 
 def test_the_runs_owed_are_those_no_shown_record_holds():
     """A run of the setting's config on the table's file is done; one on another file, or of another config, is not;
-    a dataset without a file yet is named so."""
+    a dataset without a file yet is named so, and a file by the CPU kinds its runs were made on."""
     kept = {"behaviour": {"hopper-medium": {"score": 3.0, "dataset": "abc"}},
             "records": [{**_record(), "setting": PLAIN},
                         {**_record(algorithm="mbpo", dataset="other"), "setting": PLAIN},
@@ -244,6 +244,12 @@ def test_the_runs_owed_are_those_no_shown_record_holds():
     lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
     assert lines == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
+                     "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
+    # The CPU kinds that made the file's runs, of any setting, are named; a run on another file names none.
+    kept["records"][1]["cpu"], kept["records"][2]["cpu"], kept["records"][3]["cpu"] = "Intel", "AMD", "AMD"
+    lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
+                             [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
+    assert lines == ["hopper-medium (file abc, runs made on AMD): bc 1; mbpo 0 1; mopo 0 1; drop 1",
                      "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
 
 
