@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -323,3 +324,25 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
     assert "| hopper-medium | +0.0 ± 0.0 (n=2, p=1.00) | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.00) |" in text
     assert "| hopper-random | +8.0 (n=1) | - | - |" in text
     assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
+
+
+def test_collapses_are_counted_per_method_and_told_apart_from_the_evaluations_noise():
+    """A run under 0.8 of its best counts against its method; whether the fall is wider than the evaluations' own
+    noise comes from their episodes' spread (hopper's D4RL scale, 10 episodes each)."""
+    from drop_engine.envs import get_env
+
+    spec = get_env("hopper")
+
+    def run(algorithm, best, final, spread):
+        evaluations = [{"normalized_score": s, "return_std": spread * (spec.expert_score - spec.random_score) / 100}
+                       for s in (best / 2, best, final, final, final)]
+        return {"algorithm": algorithm, "env": "hopper", "kind": "medium", "seed": 0, "final": final, "best": best,
+                "evaluations": evaluations, "config": {"eval_episodes": 10}}
+
+    fell = run("drop", 50.0, 20.0, 10.0)  # each evaluation ± 10/sqrt(10), the final's ± that/sqrt(3)
+    assert paper_table.swing(fell) == pytest.approx(30 / (10 / np.sqrt(10) * np.sqrt(4 / 3)))
+    records = [fell, run("drop", 50.0, 35.0, 60.0), run("drop", 50.0, 45.0, 10.0),
+               run("mbpo", 10.0, 9.0, 1.0), run("mbpo", 10.0, 2.0, 1.0)]
+    text = paper_table.targets(records, ["hopper-medium"])
+    assert "DROP 1 of 3, MBPO 1 of 2, MOPO 0 of 0 runs." in text
+    assert "(the policy changed, not only its measurement): DROP 1 of 2, MBPO 1 of 1, MOPO 0 of 0." in text
