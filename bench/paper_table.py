@@ -349,15 +349,12 @@ def swing(r: dict) -> float:
     episodes' spread over the square root of their count; the final's, the mean of the last evaluations' errors in
     quadrature. Above about 2 the policy changed between them; below, the gap may be the measurement's."""
     spec = get_env(r["env"])
-    episodes = r["config"]["eval_episodes"]
-    scores = [e["normalized_score"] for e in r["evaluations"]]
-    errors = [100 * e["return_std"] / (spec.expert_score - spec.random_score) / np.sqrt(episodes)
+    errors = [100 * e["return_std"] / (spec.expert_score - spec.random_score) / np.sqrt(r["config"]["eval_episodes"])
               for e in r["evaluations"]]
-    best = int(np.argmax(scores))
+    best = int(np.argmax([e["normalized_score"] for e in r["evaluations"]]))  # the first of ties, as `summarize`
     window = errors[-FINAL_WINDOW:]
-    final_error = float(np.sqrt(np.sum(np.square(window)))) / len(window)
-    return (scores[best] - float(np.mean(scores[-FINAL_WINDOW:]))) / max(float(np.hypot(errors[best], final_error)),
-                                                                        1e-12)
+    error = float(np.hypot(errors[best], np.sqrt(np.sum(np.square(window))) / len(window)))
+    return (r["best"] - r["final"]) / max(error, 1e-12)
 
 
 def paired(records: list[dict], datasets: list[str]) -> str:
