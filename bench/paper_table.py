@@ -275,7 +275,7 @@ def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithm
         missing = {algo: [str(seed) for seed in seeds if (env, kind, algo, seed) not in done] for algo in algorithms}
         if any(missing.values()):
             file = (behaviour.get(f"{env}-{kind}") or {}).get("dataset")
-            cpus = sorted({r["cpu"] for r in records if f"{r['env']}-{r['kind']}" == f"{env}-{kind}" and "cpu" in r})
+            cpus = sorted({r["cpu"] for r in records if (r["env"], r["kind"]) == (env, kind) and "cpu" in r})
             lines.append(f"{env}-{kind} (file {file[:8] if file else 'not made yet'}"
                          + (f", runs made on {', '.join(cpus)}" if cpus else "") + "): "
                          + "; ".join(f"{algo} {' '.join(left)}" for algo, left in missing.items() if left))
