@@ -214,7 +214,8 @@ def evaluate(policy: str, env: str | None, env_version: str | None, episodes: in
               help="rows recorded per behaviour policy (random, medium, expert; medium-expert holds twice this)")
 @click.option("--kinds", default=None,
               help=f"comma-separated subset of {','.join(KINDS)} (default all); "
-                   "random alone needs no online training")
+                   "random alone needs no online training; without expert or medium-expert, training stops at "
+                   "the medium policy")
 @click.option("--warmup", type=int, default=OnlineConfig.warmup, show_default=True,
               help="uniform-random steps before SAC updates start")
 @click.option("--eval-every", type=int, default=OnlineConfig.eval_every, show_default=True,

@@ -219,10 +219,12 @@ def collect_datasets(cfg: CollectConfig, out_dir: str | Path, kinds: tuple[str, 
 def _collect(cfg: CollectConfig, out: Path, sac_dir: Path, kinds: tuple[str, ...], progress: bool,
              should_stop: Callable[[], bool] | None) -> list[dict] | None:
     agent = OnlineSAC(cfg.online, sac_dir)
+    # Without an expert kind, training ends at the medium policy: on halfcheetah that is 70,000 of 200,000 steps.
+    until_medium = not {"expert", "medium-expert"} & set(kinds)
     try:
         if set(kinds) <= {"random"}:  # the untrained actor: no need to wait for online training
             agent.begin()
-        elif not agent.done:
+        elif not agent.done and not (until_medium and agent.medium is not None):
             bar = _Bar(f"{cfg.online.env} sac", cfg.online.steps, progress)
             bar.update_to(agent.step)
 
@@ -233,7 +235,7 @@ def _collect(cfg: CollectConfig, out: Path, sac_dir: Path, kinds: tuple[str, ...
                 bar.update_to(a.step)
 
             try:
-                finished = agent.run(show, should_stop)
+                finished = agent.run(show, should_stop, until_medium)
             finally:
                 bar.close()
             if not finished:

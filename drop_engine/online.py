@@ -279,10 +279,12 @@ class OnlineSAC:
             self.save()
 
     def run(self, progress: Callable[[OnlineSAC], None] | None = None,
-            should_stop: Callable[[], bool] | None = None) -> bool:
-        """Train to `cfg.steps`; True when finished, False when `should_stop` asked (a checkpoint is written either
-        way).
+            should_stop: Callable[[], bool] | None = None, until_medium: bool = False) -> bool:
+        """Train to `cfg.steps`, or with `until_medium` to the first evaluation that finds the medium policy; True
+        when finished, False when `should_stop` asked (a checkpoint is written either way).
 
+        Stopping at the medium policy changes none of the steps before it, so `medium` and `medium-replay` come out
+        as a full run's, and a later `run()` continues to `cfg.steps` as if never stopped.
         `progress(self)` is called every 100 steps and after each evaluation.
         """
         cfg = self.cfg
@@ -301,13 +303,16 @@ class OnlineSAC:
                 self.save()
                 if progress is not None:
                     progress(self)
+                if until_medium and self.medium is not None:
+                    return True
             elif progress is not None and self.step % 100 == 0:
                 progress(self)
         return True
 
     # ------------------------------------------------------------------ results
     def policy(self, kind: str) -> Snapshot:
-        """The behaviour policy for 'random', 'medium' or 'expert' (training must have finished for the latter two).
+        """The behaviour policy for 'random', 'medium' or 'expert' (training must have finished for `expert`, and for
+        `medium` until an evaluation has reached its threshold).
 
         `expert` is the best evaluated policy of the run (the latest of equals), not its last one: SAC at these
         budgets is not monotone, and on hopper the last policy scored 33.6 where the medium one had 65.4, which made
@@ -316,14 +321,14 @@ class OnlineSAC:
         """
         if kind == "random":
             return self.snapshots[0]
+        if kind == "medium" and self.medium is not None:  # found: the steps after it cannot change it
+            return self.medium
         if not self.done:
             raise RuntimeError(f"training stopped at step {self.step} of {self.cfg.steps}")
         best = max(self.snapshots[1:] or self.snapshots, key=lambda s: (s.mean_return, s.step))
         if kind == "expert":
             return best
         if kind == "medium":
-            if self.medium is not None:
-                return self.medium
             if not getattr(self, "_warned", False):
                 warnings.warn(f"{self.cfg.env}: no evaluation reached the medium return {self.cfg.threshold:.0f}; "
                               f"using the best evaluated policy (step {best.step}, return {best.mean_return:.0f})",

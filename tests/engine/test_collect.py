@@ -71,6 +71,23 @@ def test_random_alone_skips_online_training_and_makes_the_same_file(collected, t
     assert alone[1]["policy_steps"].tolist() == full[1]["policy_steps"].tolist() == [0]
 
 
+def test_medium_kinds_alone_stop_training_at_the_medium_policy_and_make_the_same_files(collected, tmp_path):
+    """Nothing after the medium policy's evaluation changes `medium` or `medium-replay`, so training stops there; a
+    later collection of `expert` continues from that checkpoint to the full run's files."""
+    out, cfg, _ = collected
+    collect_datasets(cfg, tmp_path, kinds=("medium", "medium-replay"), progress=False)
+    agent = OnlineSAC(cfg.online, tmp_path / "hopper-sac")
+    assert agent.medium is not None and agent.step == agent.medium.step < cfg.online.steps
+    agent.close()
+    for kind in ("medium", "medium-replay", "expert"):
+        if kind == "expert":
+            collect_datasets(cfg, tmp_path, kinds=("expert",), progress=False)
+        alone, full = read_arrays(tmp_path / f"hopper-{kind}.hdf5"), read_arrays(out / f"hopper-{kind}.hdf5")
+        assert alone[1]["policy_steps"].tolist() == full[1]["policy_steps"].tolist()
+        for key in full[0]:
+            np.testing.assert_array_equal(alone[0][key], full[0][key])
+
+
 def test_kinds_are_what_they_say(collected):
     out, cfg, rows = collected
     attrs = {k: read_arrays(out / f"hopper-{k}.hdf5")[1] for k in KINDS}
