@@ -270,16 +270,29 @@ def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithm
     behaviour = {name: described(entry) for name, entry in kept.get("behaviour", {}).items()}
     records = on_file(kept.get("records", []), behaviour)
     done = {key(r) for r in shown(records, wanted, bc)}
-    lines = []
+    lines = {}
     for env, kind in datasets:
         missing = {algo: [str(seed) for seed in seeds if (env, kind, algo, seed) not in done] for algo in algorithms}
         if any(missing.values()):
             file = (behaviour.get(f"{env}-{kind}") or {}).get("dataset")
             cpus = sorted({r["cpu"] for r in records if (r["env"], r["kind"]) == (env, kind) and "cpu" in r})
-            lines.append(f"{env}-{kind} (file {file[:8] if file else 'not made yet'}"
-                         + (f", runs made on {', '.join(cpus)}" if cpus else "") + "): "
-                         + "; ".join(f"{algo} {' '.join(left)}" for algo, left in missing.items() if left))
+            lines[env, kind] = (f"{env}-{kind} (file {file[:8] if file else 'not made yet'}"
+                                + (f", runs made on {', '.join(cpus)}" if cpus else "") + "): "
+                                + "; ".join(f"{algo} {' '.join(left)}" for algo, left in missing.items() if left))
     return lines
+
+
+def collect_commands(datasets: list[tuple[str, str]], data: Path) -> list[str]:
+    """The `drop collect` commands that make the missing files of `datasets`, in the order that starts runs soonest:
+    random needs no online training, the medium kinds only the training up to the medium policy, and the expert kinds
+    then continue that same run."""
+    commands = []
+    for env in dict.fromkeys(env for env, _ in datasets):
+        kinds = [kind for e, kind in datasets if e == env and not (data / f"{env}-{kind}.hdf5").exists()]
+        for group in (["random"], ["medium", "medium-replay"], ["expert", "medium-expert"]):
+            if chosen := [kind for kind in group if kind in kinds]:
+                commands.append(f"drop collect --env {env} --kinds {','.join(chosen)} --out {data} --threads 1")
+    return commands
 
 
 def runs_of(records: list[dict], dataset: str, algo: str) -> list[dict]:
@@ -457,8 +470,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.owed:
         datasets = [(env, kind) for env in args.envs for kind in args.kinds]
-        print("\n".join(owed(kept, setting_config(same_setting, args.device), bc, datasets, args.algorithms,
-                             args.seeds)) or "nothing owed")
+        lines = owed(kept, setting_config(same_setting, args.device), bc, datasets, args.algorithms, args.seeds)
+        print("\n".join(lines.values()) or "nothing owed")
+        if commands := collect_commands(list(lines), Path(args.data)):
+            print(f"\nfiles these runs need that {args.data} lacks (made on another CPU kind, a file may differ "
+                  "from the table's; each command in turn):\n" + "\n".join(commands))
         return 0
     if args.report:
         print(write())

@@ -244,14 +244,32 @@ def test_the_runs_owed_are_those_no_shown_record_holds():
                         {**_record(algorithm="bc"), "bc": "likelihood-100000", "setting": BOUND}]}
     lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
-    assert lines == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
+    assert list(lines.values()) == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
                      "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
     # The CPU kinds that made the file's runs, of any setting, are named; a run on another file names none.
     kept["records"][1]["cpu"], kept["records"][2]["cpu"], kept["records"][3]["cpu"] = "Intel", "AMD", "AMD"
     lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
-    assert lines == ["hopper-medium (file abc, runs made on AMD): bc 1; mbpo 0 1; mopo 0 1; drop 1",
+    assert list(lines.values()) == ["hopper-medium (file abc, runs made on AMD): bc 1; mbpo 0 1; mopo 0 1; drop 1",
                      "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
+
+
+def test_the_missing_files_are_collected_in_the_order_that_starts_runs_soonest(tmp_path):
+    """random needs no online training, the medium kinds stop it at the medium policy, and the expert kinds continue
+    that run: one command per stage, only for the files not already in the data directory."""
+    (tmp_path / "halfcheetah-medium.hdf5").touch()
+    owed = [("hopper", "medium-expert"), ("halfcheetah", "medium-expert"), ("halfcheetah", "medium-replay"),
+            ("halfcheetah", "medium"), ("halfcheetah", "random"), ("walker2d", "medium")]
+    end = f"--out {tmp_path} --threads 1"
+    assert paper_table.collect_commands(owed, tmp_path) == [
+        f"drop collect --env hopper --kinds medium-expert {end}",
+        f"drop collect --env halfcheetah --kinds random {end}",
+        f"drop collect --env halfcheetah --kinds medium-replay {end}",
+        f"drop collect --env halfcheetah --kinds medium-expert {end}",
+        f"drop collect --env walker2d --kinds medium {end}"]
+    for kind in ("random", "medium-replay", "medium-expert"):
+        (tmp_path / f"halfcheetah-{kind}.hdf5").touch()
+    assert paper_table.collect_commands(owed[1:5], tmp_path) == []
 
 
 def test_a_run_is_trained_recorded_with_its_file_threads_and_cpu_and_shown(tmp_path):
