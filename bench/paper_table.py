@@ -22,6 +22,7 @@ import functools
 import hashlib
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -286,12 +287,13 @@ def collect_commands(datasets: list[tuple[str, str]], data: Path) -> list[str]:
     """The `drop collect` commands that make the missing files of `datasets`, in the order that starts runs soonest:
     random needs no online training, the medium kinds only the training up to the medium policy, and the expert kinds
     then continue that same run."""
+    lacking = [(env, kind) for env, kind in datasets if not (data / f"{env}-{kind}.hdf5").exists()]
     commands = []
-    for env in dict.fromkeys(env for env, _ in datasets):
-        kinds = [kind for e, kind in datasets if e == env and not (data / f"{env}-{kind}.hdf5").exists()]
-        for group in (["random"], ["medium", "medium-replay"], ["expert", "medium-expert"]):
-            if chosen := [kind for kind in group if kind in kinds]:
-                commands.append(f"drop collect --env {env} --kinds {','.join(chosen)} --out {data} --threads 1")
+    for group in (["random"], ["medium", "medium-replay"], ["expert", "medium-expert"]):
+        for env in dict.fromkeys(env for env, _ in lacking):
+            if chosen := [kind for kind in group if (env, kind) in lacking]:
+                commands.append(f"drop collect --env {env} --kinds {','.join(chosen)} --out {shlex.quote(str(data))}"
+                                " --threads 1")
     return commands
 
 
@@ -428,7 +430,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="let a dataset file other than the one its table row was made on take that row over")
     p.add_argument("--owed", action="store_true",
                    help="only list the runs this setting's table lacks for --envs, --kinds, --algorithms and --seeds, "
-                        "with the dataset file each must run on; train nothing")
+                        "with the dataset file each must run on, and the drop collect commands for the files --data "
+                        "lacks; train nothing")
     p.add_argument("--report", action="store_true",
                    help="only rewrite this setting's table (paper_table.md; paper_table_KEY-VALUE.md with --set) "
                         "from the recorded runs; train nothing")
@@ -474,7 +477,8 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(lines.values()) or "nothing owed")
         if commands := collect_commands(list(lines), Path(args.data)):
             print(f"\nfiles these runs need that {args.data} lacks (made on another CPU kind, a file may differ "
-                  "from the table's; each command in turn):\n" + "\n".join(commands))
+                  "from the table's; one env's commands in turn, other envs beside them; then run the table with "
+                  "--envs and --kinds naming rows whose files are there):\n" + "\n".join(commands))
         return 0
     if args.report:
         print(write())

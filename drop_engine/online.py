@@ -290,6 +290,8 @@ class OnlineSAC:
         cfg = self.cfg
         self._clock = time.perf_counter()
         self.begin()
+        if until_medium and self.medium is not None:
+            return True
         while self.step < cfg.steps:
             if should_stop is not None and should_stop():
                 self.save()

@@ -256,17 +256,17 @@ def test_the_runs_owed_are_those_no_shown_record_holds():
 
 def test_the_missing_files_are_collected_in_the_order_that_starts_runs_soonest(tmp_path):
     """random needs no online training, the medium kinds stop it at the medium policy, and the expert kinds continue
-    that run: one command per stage, only for the files not already in the data directory."""
+    that run: one command per env and stage, every env's quick stages first, only for the files not already there."""
     (tmp_path / "halfcheetah-medium.hdf5").touch()
     owed = [("hopper", "medium-expert"), ("halfcheetah", "medium-expert"), ("halfcheetah", "medium-replay"),
             ("halfcheetah", "medium"), ("halfcheetah", "random"), ("walker2d", "medium")]
     end = f"--out {tmp_path} --threads 1"
     assert paper_table.collect_commands(owed, tmp_path) == [
-        f"drop collect --env hopper --kinds medium-expert {end}",
         f"drop collect --env halfcheetah --kinds random {end}",
         f"drop collect --env halfcheetah --kinds medium-replay {end}",
-        f"drop collect --env halfcheetah --kinds medium-expert {end}",
-        f"drop collect --env walker2d --kinds medium {end}"]
+        f"drop collect --env walker2d --kinds medium {end}",
+        f"drop collect --env hopper --kinds medium-expert {end}",
+        f"drop collect --env halfcheetah --kinds medium-expert {end}"]
     for kind in ("random", "medium-replay", "medium-expert"):
         (tmp_path / f"halfcheetah-{kind}.hdf5").touch()
     assert paper_table.collect_commands(owed[1:5], tmp_path) == []
