@@ -88,6 +88,16 @@ def test_medium_kinds_alone_stop_training_at_the_medium_policy_and_make_the_same
             np.testing.assert_array_equal(alone[0][key], full[0][key])
 
 
+def test_medium_kinds_alone_train_to_the_end_when_no_policy_reaches_the_bar(tmp_path):
+    cfg = CollectConfig(small_online(steps=600, medium_return=1e9), transitions=200, num_envs=2)
+    with pytest.warns(UserWarning, match="no evaluation reached the medium return"):
+        [row] = collect_datasets(cfg, tmp_path, kinds=("medium",), progress=False)
+    agent = OnlineSAC(cfg.online, tmp_path / "hopper-sac")
+    assert agent.step == 600 and agent.medium is None
+    agent.close()
+    assert not read_arrays(tmp_path / "hopper-medium.hdf5")[1]["medium_threshold_reached"]
+
+
 def test_kinds_are_what_they_say(collected):
     out, cfg, rows = collected
     attrs = {k: read_arrays(out / f"hopper-{k}.hdf5")[1] for k in KINDS}
