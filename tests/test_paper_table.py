@@ -344,6 +344,25 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
     assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
 
 
+def test_holm_multiplies_the_kth_smallest_p_by_the_tests_left_and_keeps_the_order():
+    assert paper_table.holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
+    assert paper_table.holm([0.3, 0.6]) == pytest.approx([0.6, 0.6]) and paper_table.holm([]) == []
+
+
+def test_a_gap_that_passes_alone_need_not_pass_the_correction_for_every_test():
+    def run(algorithm, seed, final, kind):
+        return {"algorithm": algorithm, "env": "hopper", "kind": kind, "seed": seed, "final": final}
+
+    records = ([run("drop", s, 10.0 * s, "medium") for s in range(3)]  # 6, 5.5, 6.5 over MBPO: p 0.002
+               + [run("mbpo", s, 10.0 * s - g, "medium") for s, g in enumerate((6.0, 5.5, 6.5))]
+               + [run("mopo", s, 10.0 * s + g, "medium") for s, g in enumerate((-1.0, 1.0, 0.0))]  # p 1
+               + [run("drop", s, 10.0 * s, "random") for s in range(3)]  # 6, 10, 14 over BC: p 0.049
+               + [run("bc", s, 10.0 * s - g, "random") for s, g in enumerate((6.0, 10.0, 14.0))])
+    text = paper_table.paired(records, ["hopper-medium", "hopper-random"])
+    assert "p under 0.05: BC 1 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
+    assert "with Holm's correction for the 3: BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead" in text
+
+
 def test_collapses_are_counted_per_method_and_told_apart_from_the_evaluations_noise():
     """A run under 0.8 of its best counts against its method; whether the fall is wider than the evaluations' own
     noise comes from their episodes' spread (hopper's D4RL scale, 10 episodes each)."""
