@@ -265,9 +265,9 @@ def displaced(kept: dict, behaviour: dict[str, dict]) -> list[str]:
 
 
 def owed(kept: dict, wanted, bc: str, datasets: list[tuple[str, str]], algorithms: list[str],
-         seeds: list[int]) -> list[str]:
-    """The runs this setting's table still lacks, dataset by dataset, each with the file they must run on and the CPU
-    kinds whose runs are on it: files differ between CPU kinds, so this says which machine can make them."""
+         seeds: list[int]) -> dict[tuple[str, str], str]:
+    """The runs this setting's table still lacks, a line per (env, kind), each with the file they must run on and the
+    CPU kinds whose runs are on it: files differ between CPU kinds, so this says which machine can make them."""
     behaviour = {name: described(entry) for name, entry in kept.get("behaviour", {}).items()}
     records = on_file(kept.get("records", []), behaviour)
     done = {key(r) for r in shown(records, wanted, bc)}

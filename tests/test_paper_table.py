@@ -245,13 +245,13 @@ def test_the_runs_owed_are_those_no_shown_record_holds():
     lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
     assert list(lines.values()) == ["hopper-medium (file abc): bc 1; mbpo 0 1; mopo 0 1; drop 1",
-                     "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
+                                    "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
     # The CPU kinds that made the file's runs, of any setting, are named; a run on another file names none.
     kept["records"][1]["cpu"], kept["records"][2]["cpu"], kept["records"][3]["cpu"] = "Intel", "AMD", "AMD"
     lines = paper_table.owed(kept, paper_table.setting_config(PLAIN), "likelihood-100000",
                              [("hopper", "medium"), ("hopper", "random")], ["bc", "mbpo", "mopo", "drop"], [0, 1])
     assert list(lines.values()) == ["hopper-medium (file abc, runs made on AMD): bc 1; mbpo 0 1; mopo 0 1; drop 1",
-                     "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
+                                    "hopper-random (file not made yet): bc 0 1; mbpo 0 1; mopo 0 1; drop 0 1"]
 
 
 def test_the_missing_files_are_collected_in_the_order_that_starts_runs_soonest(tmp_path):
