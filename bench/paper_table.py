@@ -399,7 +399,7 @@ def paired(records: list[dict], datasets: list[str]) -> str:
                 p = float(stats.ttest_1samp(gaps, 0.0).pvalue)
             else:  # the same gap on every seed: the t-test's statistic is undefined (scipy: nan), the seeds agree
                 p = 1.0 if mean == 0 else 0.0
-            row.append(f"{mean:+.1f} ± {error:.1f} (n={len(gaps)}, p={p:.2f})")
+            row.append(f"{mean:+.1f} ± {error:.1f} (n={len(gaps)}, {p_value(p)})")
             tests.append((b, mean, p))
         lines.append("| " + " | ".join(row) + " |")
 
@@ -415,6 +415,13 @@ def paired(records: list[dict], datasets: list[str]) -> str:
               f"{0.05 * len(tests):.1f} would pass 0.05 by chance if no method differed from DROP; with Holm's "
               f"correction for the {len(tests)}: {counts(holm(raw))}."]
     return "\n".join(lines) + "\n"
+
+
+def p_value(p: float) -> str:
+    """Two significant digits under 0.1, so that 0.004 does not read as 0.00 and 0.049 (under 0.05) not as 0.05."""
+    if p < 0.001:
+        return "p<0.001"
+    return f"p={p:.2f}" if p >= 0.1 else f"p={p:.2g}"
 
 
 def holm(pvalues: list[float]) -> list[float]:
