@@ -144,6 +144,9 @@ class SAC(nn.Module):
         self.alpha_optim.zero_grad(set_to_none=True)
         alpha_loss.backward()
         self.alpha_optim.step()
+        if cfg.alpha_min is not None:  # projected: the step is taken, then log alpha is put back above the floor
+            with torch.no_grad():
+                self.log_alpha.clamp_(min=math.log(cfg.alpha_min))
 
         soft_update(self.critic_target, self.critic, cfg.tau)
         q = q.detach()

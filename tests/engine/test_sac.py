@@ -31,6 +31,21 @@ def test_target_entropy_default_and_override():
     assert SAC(3, 4, SACConfig(target_entropy="data")).target_entropy == -4.0  # until the trainer estimates it
 
 
+def test_alpha_min_holds_the_temperature_where_its_loss_would_take_it_lower():
+    """A target entropy far under the policy's makes the temperature loss push alpha down at every step; the floor
+    stops it there, and without one it falls through."""
+    def alpha_after(alpha_min):
+        torch.manual_seed(0)
+        sac = SAC(2, 2, SACConfig(hidden=(16, 16), alpha_lr=0.05, target_entropy=-50.0, alpha_min=alpha_min))
+        s, a = torch.rand(64, 2), torch.rand(64, 2) * 2 - 1
+        for _ in range(100):
+            sac.update(s, a, torch.zeros(64), s, torch.zeros(64))
+        return sac.log_alpha.exp().item()
+
+    assert alpha_after(None) < 0.05
+    assert alpha_after(0.2) == pytest.approx(0.2)
+
+
 def test_behaviour_cloning_recovers_a_deterministic_policy(hopper_dataset):
     """Cloning data whose actions are a known function of the state gives back that function."""
     from drop_engine.bc import train_bc
