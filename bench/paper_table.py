@@ -418,7 +418,7 @@ def paired(records: list[dict], datasets: list[str]) -> str:
 
 
 def p_value(p: float) -> str:
-    """Two significant digits under 0.1, so that 0.004 does not read as 0.00 and 0.049 (under 0.05) not as 0.05."""
+    """Two significant digits under 0.1, so 0.0042 does not read as 0.00, nor 0.046 (counted under 0.05) as 0.05."""
     if p < 0.001:
         return "p<0.001"
     return f"p={p:.2f}" if p >= 0.1 else f"p={p:.2g}"

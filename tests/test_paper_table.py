@@ -339,7 +339,8 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
                + [run("bc", s, f) for s, f in ((1, 40.0), (2, 70.0))]  # DROP's own finals: no gap and no spread
                + [run("drop", 0, 9.0, "random"), run("bc", 0, 1.0, "random")])
     text = paper_table.paired(records, ["hopper-medium", "hopper-random"])
-    assert "| hopper-medium | +0.0 ± 0.0 (n=2, p=1.00) | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.0023) |" in text
+    assert ("| hopper-medium | +0.0 ± 0.0 (n=2, p=1.00) | +2.5 ± 7.5 (n=2, p=0.80) | +6.0 ± 0.3 (n=3, p=0.0023) |"
+            in text)
     assert "| hopper-random | +8.0 (n=1) | - | - |" in text
     assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
 
