@@ -80,13 +80,14 @@ class SACConfig(_Strict):
                           "have, and the density ratio on the data is then small (bench/QUALITY.md E28); -|A| where "
                           "too few rows have every action inside the bounds (`bc.MIN_FIT_ROWS`), as in a bang-bang "
                           "policy's data")
+    behaviour_fit_steps: int = Field(5_000, ge=1, le=100_000, description="steps of the fit that estimates the "
+                                     "data's behaviour entropy, with target_entropy='data'")
     alpha_min: float | None = Field(
         None, gt=0, le=1, description="a floor under the temperature: the entropy term keeps at least this weight "
                                       "when the policy's entropy stays above the target, where the temperature "
                                       "would otherwise decay without end (to about 1e-8 on halfcheetah-medium-replay "
-                                      "and hopper-medium-expert, bench/QUALITY.md E67, E68); None is the paper's")
-    behaviour_fit_steps: int = Field(5_000, ge=1, le=100_000, description="steps of the fit that estimates the "
-                                     "data's behaviour entropy, with target_entropy='data'")
+                                      "and hopper-medium-expert, bench/QUALITY.md E67, E68; one pilot run, E69); "
+                                      "None is the paper's")
     bc_weight: Weight = Field(0.0, description="behaviour term of the actor loss, as TD3+BC: with w > 0 the "
                              "actor minimises (alpha logp - Q)/mean|Q| + w * the term `bc_action` picks, on a real "
                              "batch; 0 is plain SAC (the paper)")
