@@ -391,16 +391,9 @@ def paired(records: list[dict], datasets: list[str]) -> str:
         for b in baselines:
             other = finals(dataset, b)
             gaps = [drop[s] - other[s] for s in sorted(drop.keys() & other.keys())]
-            if len(gaps) < 2:
-                row.append(f"{gaps[0]:+.1f} (n=1)" if gaps else "-")
-                continue
-            mean, error = float(np.mean(gaps)), float(stats.sem(gaps))
-            if error > 0:
-                p = float(stats.ttest_1samp(gaps, 0.0).pvalue)
-            else:  # the same gap on every seed: the t-test's statistic is undefined (scipy: nan), the seeds agree
-                p = 1.0 if mean == 0 else 0.0
-            row.append(f"{mean:+.1f} ± {error:.1f} (n={len(gaps)}, {p_value(p)})")
-            tests.append((b, mean, p))
+            row.append(gap_text(gaps))
+            if len(gaps) >= 2:
+                tests.append((b, *gap_test(gaps)[::2]))
         lines.append("| " + " | ".join(row) + " |")
 
     def counts(ps: list[float]) -> str:
@@ -414,6 +407,54 @@ def paired(records: list[dict], datasets: list[str]) -> str:
     lines += ["", f"Datasets where DROP's gap has p under 0.05: {counts(raw)}. Of {len(tests)} tests, about "
               f"{0.05 * len(tests):.1f} would pass 0.05 by chance if no method differed from DROP; with Holm's "
               f"correction for the {len(tests)}: {counts(holm(raw))}."]
+    return "\n".join(lines) + "\n"
+
+
+def gap_test(gaps: list[float]) -> tuple[float, float, float]:
+    """The mean of paired differences, its standard error and a two-sided one-sample t-test's p (two or more)."""
+    mean, error = float(np.mean(gaps)), float(stats.sem(gaps))
+    if error > 0:
+        return mean, error, float(stats.ttest_1samp(gaps, 0.0).pvalue)
+    # the same gap on every seed: the t-test's statistic is undefined (scipy: nan), the seeds agree
+    return mean, error, 1.0 if mean == 0 else 0.0
+
+
+def gap_text(gaps: list[float]) -> str:
+    if len(gaps) < 2:
+        return f"{gaps[0]:+.1f} (n=1)" if gaps else "-"
+    mean, error, p = gap_test(gaps)
+    return f"{mean:+.1f} ± {error:.1f} (n={len(gaps)}, {p_value(p)})"
+
+
+def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str:
+    """An ablation's runs beside the preset's runs of the same file, method and seed. A seed's runs share one
+    ensemble (the model cache's key leaves SAC's settings out), so the pairs differ by the overrides alone, and the
+    difference is the ablation's effect on that seed; the collapse counts say whether it held the runs' scores."""
+    base = {(*key(r), r.get("dataset")): r for r in plain if r["algorithm"] != "bc"}
+    pairs = sorted(((r, b) for r in records if r["algorithm"] != "bc"
+                    and (b := base.get((*key(r), r.get("dataset")))) is not None
+                    and not same_config(r.get("config"), b.get("config"))), key=lambda pair: key(pair[0]))
+    if not pairs:
+        return ""
+
+    def run(r: dict) -> str:
+        return f"{r['final']:.1f} ({r['best']:.1f}, {r['final'] / r['best']:.2f})" if r["best"] else f"{r['final']:.1f}"
+
+    def held(runs: list[dict]) -> int:
+        return sum(r["best"] is None or r["final"] >= 0.8 * r["best"] for r in runs)
+
+    name = " ".join(overrides)
+    lines = ["", f"Each run beside the preset's run of the same file, method and seed, without {name} (final (best, "
+                 "final/best)):", "", f"| dataset | method | seed | with {name} | without | difference |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['env']}-{r['kind']} | {r['algorithm'].upper()} | {r['seed']} | {run(r)} | {run(b)} | "
+              f"{r['final'] - b['final']:+.1f} |" for r, b in pairs]
+    lines.append("")
+    for algo in dict.fromkeys(r["algorithm"] for r, _ in pairs):
+        mine = [(r, b) for r, b in pairs if r["algorithm"] == algo]
+        gaps = [r["final"] - b["final"] for r, b in mine]
+        lines.append(f"- {algo.upper()}: final with minus without {gap_text(gaps)}; final at least 0.8 of best in "
+                     f"{held([r for r, _ in mine])} of {len(mine)} runs with, {held([b for _, b in mine])} without.")
     return "\n".join(lines) + "\n"
 
 
@@ -484,6 +525,7 @@ def main(argv: list[str] | None = None) -> int:
             scores = {name: described(entry) for name, entry in {**now.get("behaviour", {}), **behaviour}.items()}
             write_text(results, json.dumps({"behaviour": scores, "records": merged}, indent=2))
         mine = sorted(shown(on_file(merged, scores), setting_config(setting, args.device), bc), key=key)
+        plain = shown(on_file(merged, scores), setting_config({**setting, "set": []}, args.device), bc)
         datasets = {f"{r['env']}-{r['kind']}" for r in mine if r["algorithm"] != "bc" or r["setting"] == setting}
         overrides = " ".join(setting["set"])
         text = (f"# Table 1 at CPU scale (preset `{args.preset}` revision {REVISION}"
@@ -491,7 +533,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"BC: a tanh-Gaussian actor fitted by maximum likelihood for {args.bc_steps:,} steps, acting with its "
                 f"mode, {args.episodes} episodes.\n\n"
                 + table(mine, {d: v["score"] for d, v in sorted(scores.items()) if d in datasets}, list(ALGORITHMS))
-                + carried(mine, setting))
+                + carried(mine, setting)
+                + (against(mine, plain, setting["set"]) if setting["set"] else ""))
         # Another preset, or a setting with overrides (an ablation), gets a table of its own: never the cpu preset's.
         preset = [] if args.preset == "cpu" else [args.preset]
         name = "_".join(["paper_table", *preset, *setting["set"]]).replace("/", "-").replace("=", "-")

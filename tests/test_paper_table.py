@@ -390,3 +390,24 @@ def test_collapses_are_counted_per_method_and_told_apart_from_the_evaluations_no
     text = paper_table.targets(records, ["hopper-medium"])
     assert "DROP 1 of 3, MBPO 1 of 2, MOPO 0 of 0 runs." in text
     assert "(the policy changed, not only its measurement): DROP 1 of 2, MBPO 1 of 1, MOPO 0 of 0." in text
+
+
+def test_an_ablations_runs_are_set_beside_the_presets_runs_of_their_file_method_and_seed():
+    """Paired by seed on the same file; a run whose config the overrides left as the preset's is no ablation."""
+    def run(algorithm, seed, final, best, setting, dataset="abc"):
+        return {**_record(algorithm, live=False, dataset=dataset, final=final, setting=setting), "seed": seed,
+                "best": best}
+
+    same = run("mopo", 0, 5.0, 5.0, PLAIN)
+    plain = [run("drop", 0, 5.0, 10.0, PLAIN), run("drop", 1, 9.0, 10.0, PLAIN), run("mbpo", 0, 4.0, 8.0, PLAIN),
+             run("drop", 2, 1.0, 2.0, PLAIN, dataset="other"), same]
+    ablation = [run("drop", 0, 8.0, 9.0, BOUND), run("drop", 1, 10.0, 10.0, BOUND), run("mbpo", 0, 6.0, 8.0, BOUND),
+                run("drop", 2, 3.0, 3.0, BOUND), same]
+    text = paper_table.against(ablation, plain, BOUND["set"])
+    assert "| hopper-medium | DROP | 0 | 8.0 (9.0, 0.89) | 5.0 (10.0, 0.50) | +3.0 |" in text
+    assert "| hopper-medium | DROP | 2 |" not in text and "MOPO" not in text
+    assert ("- DROP: final with minus without +2.0 ± 1.0 (n=2, p=0.30); final at least 0.8 of best in 2 of 2 runs "
+            "with, 1 without.") in text
+    assert ("- MBPO: final with minus without +2.0 (n=1); final at least 0.8 of best in 0 of 1 runs with, 0 "
+            "without.") in text
+    assert paper_table.against([same], plain, BOUND["set"]) == ""
