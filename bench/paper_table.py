@@ -459,10 +459,13 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
 
 
 def p_value(p: float) -> str:
-    """Two significant digits under 0.1, so 0.0042 does not read as 0.00, nor 0.046 (counted under 0.05) as 0.05."""
+    """Two significant digits under 0.1, so 0.0042 does not read as 0.00, nor 0.046 (counted under 0.05) as 0.05;
+    three where two would round a p under 0.05 up to it (0.0496)."""
     if p < 0.001:
         return "p<0.001"
-    return f"p={p:.2f}" if p >= 0.1 else f"p={p:.2g}"
+    if p >= 0.1:
+        return f"p={p:.2f}"
+    return f"p={p:.3g}" if p < 0.05 <= float(f"{p:.2g}") else f"p={p:.2g}"
 
 
 def holm(pvalues: list[float]) -> list[float]:

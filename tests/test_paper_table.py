@@ -346,9 +346,10 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
 
 
 def test_p_values_under_a_tenth_keep_two_significant_digits():
-    """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049 as 0.05 (it is counted under 0.05)."""
-    assert [paper_table.p_value(p) for p in (1.0, 0.8, 0.049, 0.004, 0.0)] == [
-        "p=1.00", "p=0.80", "p=0.049", "p=0.004", "p<0.001"]
+    """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049 or 0.0496 as 0.05 (they are counted
+    under 0.05)."""
+    assert [paper_table.p_value(p) for p in (1.0, 0.8, 0.0504, 0.0496, 0.049, 0.004, 0.0)] == [
+        "p=1.00", "p=0.80", "p=0.05", "p=0.0496", "p=0.049", "p=0.004", "p<0.001"]
 
 
 def test_holm_multiplies_the_kth_smallest_p_by_the_tests_left_and_keeps_the_order():
