@@ -437,8 +437,9 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
     if not pairs:
         return ""
 
-    def run(r: dict) -> str:
-        return f"{r['final']:.1f} ({r['best']:.1f}, {r['final'] / r['best']:.2f})" if r["best"] else f"{r['final']:.1f}"
+    def run(r: dict) -> str:  # final/best only where best is positive: a ratio of negatives reads as held
+        ratio = f", {r['final'] / r['best']:.2f}" if r["best"] > 0 else ""
+        return f"{r['final']:.1f} ({r['best']:.1f}{ratio})"
 
     def held(runs: list[dict]) -> int:
         return sum(r["best"] is None or r["final"] >= 0.8 * r["best"] for r in runs)
@@ -450,22 +451,26 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
     lines += [f"| {r['env']}-{r['kind']} | {r['algorithm'].upper()} | {r['seed']} | {run(r)} | {run(b)} | "
               f"{r['final'] - b['final']:+.1f} |" for r, b in pairs]
     lines.append("")
-    for algo in dict.fromkeys(r["algorithm"] for r, _ in pairs):
+    for algo in [a for a in ALGORITHMS if any(r["algorithm"] == a for r, _ in pairs)]:
         mine = [(r, b) for r, b in pairs if r["algorithm"] == algo]
         gaps = [r["final"] - b["final"] for r, b in mine]
-        lines.append(f"- {algo.upper()}: final with minus without {gap_text(gaps)}; final at least 0.8 of best in "
+        lines.append(f"- {algo.upper()}, every pair above: final with minus without {gap_text(gaps)}; final at least "
+                     f"0.8 of best in "
                      f"{held([r for r, _ in mine])} of {len(mine)} runs with, {held([b for _, b in mine])} without.")
     return "\n".join(lines) + "\n"
 
 
 def p_value(p: float) -> str:
     """Two significant digits under 0.1, so 0.0042 does not read as 0.00, nor 0.046 (counted under 0.05) as 0.05;
-    three where two would round a p under 0.05 up to it (0.0496)."""
+    more where two would round a p under 0.05 up to it (0.0496, 0.04995)."""
     if p < 0.001:
         return "p<0.001"
-    if p >= 0.1:
+    if float(f"{p:.2g}") >= 0.1:
         return f"p={p:.2f}"
-    return f"p={p:.3g}" if p < 0.05 <= float(f"{p:.2g}") else f"p={p:.2g}"
+    digits = 2
+    while p < 0.05 <= float(f"{p:.{digits}g}"):
+        digits += 1
+    return f"p={p:.{digits}g}"
 
 
 def holm(pvalues: list[float]) -> list[float]:

@@ -185,6 +185,9 @@ def test_the_report_shows_each_row_by_the_settings_configs(tmp_path, capsys):
     ablation = (tmp_path / "paper_table_sac.critic_layer_norm-true.md").read_text()
     assert "| hopper-medium | 3.0 | 2.0 ± 0.0 (n=1) | 2.0 ± 0.0 (n=1) | - | - | - | - | 5.0 ± 0.0 (n=1)" in ablation
     assert "hopper-random" not in ablation
+    # beside the preset's run of its file, method and seed; the preset's own table has no such section
+    assert "| hopper-medium | DROP | 0 | 5.0 (8.0, 0.62) | 4.0 (8.0, 0.50) | +1.0 |" in ablation
+    assert "Each run beside" not in "\n".join(plain)
 
 
 def test_code_version_tells_uncommitted_engine_changes_apart(tmp_path):
@@ -348,8 +351,8 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
 def test_p_values_under_a_tenth_keep_two_significant_digits():
     """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049 or 0.0496 as 0.05 (they are counted
     under 0.05)."""
-    assert [paper_table.p_value(p) for p in (1.0, 0.8, 0.0504, 0.0496, 0.049, 0.004, 0.0)] == [
-        "p=1.00", "p=0.80", "p=0.05", "p=0.0496", "p=0.049", "p=0.004", "p<0.001"]
+    assert [paper_table.p_value(p) for p in (1.0, 0.8, 0.09996, 0.0504, 0.0496, 0.04995, 0.049, 0.004, 0.0)] == [
+        "p=1.00", "p=0.80", "p=0.10", "p=0.05", "p=0.0496", "p=0.04995", "p=0.049", "p=0.004", "p<0.001"]
 
 
 def test_holm_multiplies_the_kth_smallest_p_by_the_tests_left_and_keeps_the_order():
@@ -407,8 +410,9 @@ def test_an_ablations_runs_are_set_beside_the_presets_runs_of_their_file_method_
     text = paper_table.against(ablation, plain, BOUND["set"])
     assert "| hopper-medium | DROP | 0 | 8.0 (9.0, 0.89) | 5.0 (10.0, 0.50) | +3.0 |" in text
     assert "| hopper-medium | DROP | 2 |" not in text and "MOPO" not in text
-    assert ("- DROP: final with minus without +2.0 ± 1.0 (n=2, p=0.30); final at least 0.8 of best in 2 of 2 runs "
-            "with, 1 without.") in text
-    assert ("- MBPO: final with minus without +2.0 (n=1); final at least 0.8 of best in 0 of 1 runs with, 0 "
-            "without.") in text
+    assert ("- DROP, every pair above: final with minus without +2.0 ± 1.0 (n=2, p=0.30); final at least 0.8 of best "
+            "in 2 of 2 runs with, 1 without.") in text
+    assert ("- MBPO, every pair above: final with minus without +2.0 (n=1); final at least 0.8 of best in 0 of 1 runs "
+            "with, 0 without.") in text
+    assert text.index("- MBPO") < text.index("- DROP")  # the tables' order of methods
     assert paper_table.against([same], plain, BOUND["set"]) == ""
