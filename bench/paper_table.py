@@ -455,8 +455,8 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
         mine = [(r, b) for r, b in pairs if r["algorithm"] == algo]
         gaps = [r["final"] - b["final"] for r, b in mine]
         lines.append(f"- {algo.upper()}, every pair above: final with minus without {gap_text(gaps)}; final at least "
-                     f"0.8 of best in "
-                     f"{held([r for r, _ in mine])} of {len(mine)} runs with, {held([b for _, b in mine])} without.")
+                     f"0.8 of best in {held([r for r, _ in mine])} of {len(mine)} runs with, "
+                     f"{held([b for _, b in mine])} without.")
     return "\n".join(lines) + "\n"
 
 
