@@ -349,8 +349,8 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
 
 
 def test_p_values_under_a_tenth_keep_two_significant_digits():
-    """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049 or 0.0496 as 0.05 (they are counted
-    under 0.05)."""
+    """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049, 0.0496 or 0.04995 as 0.05 (they are
+    counted under 0.05), nor 0.09996 as 0.1 beside 0.1's 0.10."""
     assert [paper_table.p_value(p) for p in (1.0, 0.8, 0.09996, 0.0504, 0.0496, 0.04995, 0.049, 0.004, 0.0)] == [
         "p=1.00", "p=0.80", "p=0.10", "p=0.05", "p=0.0496", "p=0.04995", "p=0.049", "p=0.004", "p<0.001"]
 
@@ -416,3 +416,6 @@ def test_an_ablations_runs_are_set_beside_the_presets_runs_of_their_file_method_
             "with, 0 without.") in text
     assert text.index("- MBPO") < text.index("- DROP")  # the tables' order of methods
     assert paper_table.against([same], plain, BOUND["set"]) == ""
+    # a best at or under zero gets no final/best: a ratio of two negative scores would read as a run that held
+    fell = paper_table.against([run("drop", 0, -3.0, -1.0, BOUND)], [run("drop", 0, -2.0, 0.0, PLAIN)], BOUND["set"])
+    assert "| hopper-medium | DROP | 0 | -3.0 (-1.0) | -2.0 (0.0) | -1.0 |" in fell
