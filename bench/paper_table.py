@@ -349,14 +349,20 @@ def targets(records: list[dict], datasets: list[str]) -> str:
     held, fell = [], []
     for algo in ("drop", "mbpo", "mopo"):
         runs = [r for r in records if r["algorithm"] == algo]
-        under = [r for r in runs if r["best"] is not None and r["final"] < 0.8 * r["best"]]
+        under = [r for r in runs if not holds(r)]
         held.append(f"{algo.upper()} {len(runs) - len(under)} of {len(runs)}")
         fell.append(f"{algo.upper()} {sum(swing(r) > 2 for r in under)} of {len(under)}")
-    lines += ["", f"No collapse (final at least 0.8 of best; final is the mean of the last {FINAL_WINDOW} "
-                  f"evaluations): {', '.join(held)} runs. Of the runs under 0.8, those whose best stands more than "
-                  f"twice the evaluations' standard error above their final (the policy changed, not only its "
-                  f"measurement): {', '.join(fell)}."]
+    lines += ["", f"No collapse (final at least 0.8 of best, or for a best under zero at most a fifth of it under; "
+                  f"final is the mean of the last {FINAL_WINDOW} evaluations): {', '.join(held)} runs. Of the runs "
+                  f"that fell, those whose best stands more than twice the evaluations' standard error above their "
+                  f"final (the policy changed, not only its measurement): {', '.join(fell)}."]
     return "\n".join(lines) + "\n"
+
+
+def holds(r: dict) -> bool:
+    """The issue's no-collapse bar, final at least 0.8 of best, read as a fall of at most a fifth of the best: a run
+    whose best is under zero climbed to no peak, and its final beside that best is no collapse (0.8 of it is higher)."""
+    return r["best"] is None or r["final"] >= r["best"] - 0.2 * abs(r["best"])
 
 
 def swing(r: dict) -> float:
@@ -441,9 +447,6 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
         ratio = f", {r['final'] / r['best']:.2f}" if r["best"] > 0 else ""
         return f"{r['final']:.1f} ({r['best']:.1f}{ratio})"
 
-    def held(runs: list[dict]) -> int:
-        return sum(r["best"] is None or r["final"] >= 0.8 * r["best"] for r in runs)
-
     name = " ".join(overrides)
     lines = ["", f"Each run beside the preset's run of the same file, method and seed, without {name} (final (best, "
                  "final/best)):", "", f"| dataset | method | seed | with {name} | without | difference |",
@@ -455,8 +458,8 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
         mine = [(r, b) for r, b in pairs if r["algorithm"] == algo]
         gaps = [r["final"] - b["final"] for r, b in mine]
         lines.append(f"- {algo.upper()}, every pair above: final with minus without {gap_text(gaps)}; final at least "
-                     f"0.8 of best in {held([r for r, _ in mine])} of {len(mine)} runs with, "
-                     f"{held([b for _, b in mine])} without.")
+                     f"0.8 of best in {sum(holds(r) for r, _ in mine)} of {len(mine)} runs with, "
+                     f"{sum(holds(b) for _, b in mine)} without.")
     return "\n".join(lines) + "\n"
 
 
