@@ -378,13 +378,24 @@ def swing(r: dict) -> float:
     return (r["best"] - r["final"]) / max(error, 1e-12)
 
 
+def same_model(a: dict, b: dict) -> bool:
+    """Whether two runs of one file and seed trained on one ensemble. The model cache's key leaves out the CPU kind,
+    and another kind trains another model under it (QUALITY.md E66, E71); behaviour cloning uses none, and a record
+    from before ensembles were recorded is taken to share its seed's."""
+    if "bc" in (a["algorithm"], b["algorithm"]):
+        return True
+    errors = [r.get("dynamics", {}).get("holdout_mse") for r in (a, b)]
+    return None in errors or errors[0] == errors[1]
+
+
 def paired(records: list[dict], datasets: list[str]) -> str:
     """DROP's final minus each baseline's, seed by seed: a seed's DROP, MOPO and MBPO share one ensemble, so the
-    difference leaves out how good that seed's model came out, which is most of the spread between seeds. The ± is the
-    standard error of the mean difference and p a paired t-test's (two-sided): at 2 or 3 seeds a gap needs 12.7 or
-    4.3 standard errors for p under 0.05."""
-    def finals(dataset: str, algo: str) -> dict[int, float]:
-        return {r["seed"]: r["final"] for r in runs_of(records, dataset, algo)}
+    difference leaves out how good that seed's model came out, which is most of the spread between seeds; a seed whose
+    runs trained on different ensembles is left out of the pairs, and named. The ± is the standard error of the mean
+    difference and p a paired t-test's (two-sided): at 2 or 3 seeds a gap needs 12.7 or 4.3 standard errors for p
+    under 0.05."""
+    def finals(dataset: str, algo: str) -> dict[int, dict]:
+        return {r["seed"]: r for r in runs_of(records, dataset, algo)}
 
     baselines = ("bc", "mopo", "mbpo")
     lines = ["", "DROP's final minus each baseline's on the same seeds (mean ± standard error of the differences, "
@@ -392,11 +403,14 @@ def paired(records: list[dict], datasets: list[str]) -> str:
              "| dataset | " + " | ".join(f"DROP − {b.upper()}" for b in baselines) + " |",
              "|---|" + "---|" * len(baselines)]
     tests = []  # (baseline, mean gap, p) of every gap with at least two seeds
+    apart = []  # the seeds left out: two models
     for dataset in datasets:
         drop, row = finals(dataset, "drop"), [dataset]
         for b in baselines:
             other = finals(dataset, b)
-            gaps = [drop[s] - other[s] for s in sorted(drop.keys() & other.keys())]
+            seeds = sorted(drop.keys() & other.keys())
+            apart += [f"{dataset} {b.upper()} seed {s}" for s in seeds if not same_model(drop[s], other[s])]
+            gaps = [drop[s]["final"] - other[s]["final"] for s in seeds if same_model(drop[s], other[s])]
             row.append(gap_text(gaps))
             if len(gaps) >= 2:
                 tests.append((b, *gap_test(gaps)[::2]))
@@ -409,6 +423,9 @@ def paired(records: list[dict], datasets: list[str]) -> str:
                 clear[b]["ahead" if mean > 0 else "behind"] += 1
         return "; ".join(f"{b.upper()} {c['ahead']} ahead, {c['behind']} behind" for b, c in clear.items())
 
+    if apart:
+        lines += ["", f"Left out of the pairs, as the seed's DROP run and the baseline's trained on two ensembles (the "
+                      f"same cache key on two CPU kinds): {'; '.join(apart)}."]
     raw = [p for _, _, p in tests]
     lines += ["", f"Datasets where DROP's gap has p under 0.05: {counts(raw)}. Of {len(tests)} tests, about "
               f"{0.05 * len(tests):.1f} would pass 0.05 by chance if no method differed from DROP; with Holm's "
@@ -435,12 +452,15 @@ def gap_text(gaps: list[float]) -> str:
 def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str:
     """An ablation's runs beside the preset's runs of the same file, method and seed. A seed's runs share one
     ensemble (the model cache's key leaves SAC's settings out), so the pairs differ by the overrides alone, and the
-    difference is the ablation's effect on that seed; the collapse counts say whether it held the runs' scores."""
+    difference is the ablation's effect on that seed; the collapse counts say whether it held the runs' scores. A run
+    whose preset run trained on another ensemble (another CPU kind) is named apart, with no pair."""
     base = {(*key(r), r.get("dataset")): r for r in plain if r["algorithm"] != "bc"}
-    pairs = sorted(((r, b) for r in records if r["algorithm"] != "bc"
+    found = sorted(((r, b) for r in records if r["algorithm"] != "bc"
                     and (b := base.get((*key(r), r.get("dataset")))) is not None
                     and not same_config(r.get("config"), b.get("config"))), key=lambda pair: key(pair[0]))
-    if not pairs:
+    pairs = [(r, b) for r, b in found if same_model(r, b)]
+    apart = [r for r, b in found if not same_model(r, b)]
+    if not found:
         return ""
 
     def run(r: dict) -> str:  # final/best only where best is positive: a ratio of negatives reads as held
@@ -448,18 +468,24 @@ def against(records: list[dict], plain: list[dict], overrides: list[str]) -> str
         return f"{r['final']:.1f} ({r['best']:.1f}{ratio})"
 
     name = " ".join(overrides)
-    lines = ["", f"Each run beside the preset's run of the same file, method and seed, without {name} (final (best, "
-                 "final/best)):", "", f"| dataset | method | seed | with {name} | without | difference |",
-             "|---|---|---|---|---|---|"]
-    lines += [f"| {r['env']}-{r['kind']} | {r['algorithm'].upper()} | {r['seed']} | {run(r)} | {run(b)} | "
-              f"{r['final'] - b['final']:+.1f} |" for r, b in pairs]
-    lines.append("")
+    lines = [""]
+    if pairs:
+        lines += [f"Each run beside the preset's run of the same file, method and seed, without {name} (final (best, "
+                  "final/best)):", "", f"| dataset | method | seed | with {name} | without | difference |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {r['env']}-{r['kind']} | {r['algorithm'].upper()} | {r['seed']} | {run(r)} | {run(b)} | "
+                  f"{r['final'] - b['final']:+.1f} |" for r, b in pairs]
+        lines.append("")
     for algo in [a for a in ALGORITHMS if any(r["algorithm"] == a for r, _ in pairs)]:
         mine = [(r, b) for r, b in pairs if r["algorithm"] == algo]
         gaps = [r["final"] - b["final"] for r, b in mine]
         lines.append(f"- {algo.upper()}, every pair above: final with minus without {gap_text(gaps)}; final at least "
                      f"0.8 of best in {sum(holds(r) for r, _ in mine)} of {len(mine)} runs with, "
                      f"{sum(holds(b) for _, b in mine)} without.")
+    if apart:
+        named = "; ".join(f"{r['env']}-{r['kind']} {r['algorithm'].upper()} seed {r['seed']} {run(r)}" for r in apart)
+        lines.append(f"- No pair, as the preset's run of the seed trained on another ensemble (the same cache key on "
+                     f"another CPU kind): {named}.")
     return "\n".join(lines) + "\n"
 
 

@@ -348,6 +348,31 @@ def test_drops_gaps_are_paired_by_seed_and_counted_where_the_seeds_can_tell():
     assert "BC 0 ahead, 0 behind; MOPO 0 ahead, 0 behind; MBPO 1 ahead, 0 behind." in text
 
 
+def test_a_seed_whose_runs_trained_on_two_ensembles_is_named_not_paired():
+    """The same cache key trains another model on another CPU kind (QUALITY.md E71): that seed's gap would hold the two
+    models' difference, so DROP's pairs and an ablation's leave it out and name it. BC uses no model, and a record
+    from before ensembles were recorded pairs as before."""
+    def run(algorithm, seed, final, errors=None, setting=PLAIN):
+        record = {**_record(algorithm, live=False, final=final, setting=setting), "seed": seed, "best": final}
+        return record | ({"dynamics": {"holdout_mse": errors}} if errors else {})
+
+    one, other = [0.3, 0.4], [0.3, 0.5]
+    records = [run("drop", 0, 10.0, one), run("drop", 1, 20.0, one), run("mopo", 0, 4.0, one),
+               run("mopo", 1, 50.0, other), run("mbpo", 0, 8.0), run("bc", 1, 5.0)]
+    text = paper_table.paired(records, ["hopper-medium"])
+    assert "| hopper-medium | +15.0 (n=1) | +6.0 (n=1) | +2.0 (n=1) |" in text
+    assert "(the same cache key on two CPU kinds): hopper-medium MOPO seed 1." in text
+    assert "Left out" not in paper_table.paired(records[:-3], ["hopper-medium"])
+
+    ablation = [run("drop", 0, 12.0, one, BOUND), run("drop", 1, 25.0, other, BOUND)]
+    text = paper_table.against(ablation, records, BOUND["set"])
+    assert "| hopper-medium | DROP | 0 | 12.0 (12.0, 1.00) | 10.0 (10.0, 1.00) | +2.0 |" in text
+    assert "| hopper-medium | DROP | 1 |" not in text and "final with minus without +2.0 (n=1)" in text
+    assert "(the same cache key on another CPU kind): hopper-medium DROP seed 1 25.0 (25.0, 1.00)." in text
+    alone = paper_table.against(ablation[1:], records, BOUND["set"])
+    assert "Each run beside" not in alone and "hopper-medium DROP seed 1 25.0" in alone
+
+
 def test_p_values_under_a_tenth_keep_two_significant_digits():
     """0.004 must not read as 0.00 (a gap the same on every seed), nor 0.049, 0.0496 or 0.04995 as 0.05 (they are
     counted under 0.05), nor 0.09996 as 0.1 beside 0.1's 0.10."""
