@@ -409,7 +409,8 @@ def paired(records: list[dict], datasets: list[str]) -> str:
         for b in baselines:
             other = finals(dataset, b)
             seeds = sorted(drop.keys() & other.keys())
-            apart += [f"{dataset} {b.upper()} seed {s}" for s in seeds if not same_model(drop[s], other[s])]
+            apart += [f"{dataset} {b.upper()} seed {s} ({drop[s]['final'] - other[s]['final']:+.1f})" for s in seeds
+                      if not same_model(drop[s], other[s])]
             gaps = [drop[s]["final"] - other[s]["final"] for s in seeds if same_model(drop[s], other[s])]
             row.append(gap_text(gaps))
             if len(gaps) >= 2:
@@ -425,7 +426,7 @@ def paired(records: list[dict], datasets: list[str]) -> str:
 
     if apart:
         lines += ["", f"Left out of the pairs, as the seed's DROP run and the baseline's trained on two ensembles (the "
-                      f"same cache key on two CPU kinds): {'; '.join(apart)}."]
+                      f"same cache key on two CPU kinds), with DROP's final minus the baseline's: {'; '.join(apart)}."]
     raw = [p for _, _, p in tests]
     lines += ["", f"Datasets where DROP's gap has p under 0.05: {counts(raw)}. Of {len(tests)} tests, about "
               f"{0.05 * len(tests):.1f} would pass 0.05 by chance if no method differed from DROP; with Holm's "

@@ -361,7 +361,7 @@ def test_a_seed_whose_runs_trained_on_two_ensembles_is_named_not_paired():
                run("mopo", 1, 50.0, other), run("mbpo", 0, 8.0), run("bc", 1, 5.0)]
     text = paper_table.paired(records, ["hopper-medium"])
     assert "| hopper-medium | +15.0 (n=1) | +6.0 (n=1) | +2.0 (n=1) |" in text
-    assert "(the same cache key on two CPU kinds): hopper-medium MOPO seed 1." in text
+    assert "with DROP's final minus the baseline's: hopper-medium MOPO seed 1 (-30.0)." in text
     assert "Left out" not in paper_table.paired(records[:-3], ["hopper-medium"])
 
     ablation = [run("drop", 0, 12.0, one, BOUND), run("drop", 1, 25.0, other, BOUND)]
