@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Mapping, TextIO
+from typing import Any, Mapping, TextIO
 
 
 class Callback:
@@ -21,6 +21,11 @@ class Callback:
 
     def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         """Named scalar metrics at a global SAC step (step 0 and negative for the dynamics phase)."""
+
+    def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
+        """The dynamics ensemble the run trains on, once fitted or fetched (and again on a resume): `cache_key`,
+        `from_cache`, `cache_path` (None without a model cache) and the fit's report (`epochs`, `holdout_mse`,
+        `elites`, `seconds`, `stopped_by`)."""
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         """An evaluation in the real env after `epoch` epochs."""
@@ -52,8 +57,8 @@ class ProgressBar(Callback):
         self._bar.n = step
         self._bar.refresh()
 
-    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
-        if metrics.get("dynamics/from_cache") and self._bar is not None:
+    def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
+        if dynamics.get("from_cache") and self._bar is not None:
             self._bar.set_description("dynamics (from the model cache)")
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
@@ -88,8 +93,8 @@ class ProgressLine(Callback):
         where = f"epoch {epoch}, step {step}/{total}" if phase == "train" else f"{step}/{total}"
         self._print(f"{phase}: {where}{share}")
 
-    def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
-        if metrics.get("dynamics/from_cache"):
+    def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
+        if dynamics.get("from_cache"):
             self._print("dynamics: from the model cache")
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
@@ -120,6 +125,10 @@ class CallbackList(Callback):
     def on_metrics(self, metrics: Mapping[str, float], step: int) -> None:
         for cb in self.callbacks:
             cb.on_metrics(metrics, step)
+
+    def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
+        for cb in self.callbacks:
+            cb.on_dynamics(dynamics)
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         for cb in self.callbacks:

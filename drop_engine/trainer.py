@@ -433,6 +433,8 @@ class Trainer:
             if not self.train_dynamics():
                 return self._result("stopped")
             self.checkpoint()
+        if self.dynamics_report is not None:
+            self.cb.on_dynamics(self.dynamics())
         if not self.fit_target_entropy():
             return self._result("stopped", checkpoint=str(self.checkpoint()))
         while self.epoch < cfg.epochs:
@@ -448,6 +450,10 @@ class Trainer:
         policy = self.export()
         self.cb.on_progress("export", self.epoch, 1, 1)
         return self._result("completed", policy)
+
+    def dynamics(self) -> dict:
+        """The fitted ensemble's report and where it came from, as `Callback.on_dynamics` and `TrainResult` give it."""
+        return {**asdict(self.dynamics_report), **(self.dynamics_source or {})}
 
     def _scores(self) -> list[tuple[int, float]]:
         return [(e["epoch"], e["normalized_score"]) for e in self.evaluations]
@@ -488,7 +494,7 @@ class Trainer:
             status=status, epochs=self.epoch, global_step=self.global_step,
             last_return=last["return"] if last else None, **asdict(summarize(self._scores())),
             evaluations=list(self.evaluations), policy=policy,
-            dynamics={**asdict(self.dynamics_report), **(self.dynamics_source or {})} if self.dynamics_report else None,
+            dynamics=self.dynamics() if self.dynamics_report else None,
             timings=dict(self.timings), checkpoint=checkpoint, machine=machine(),
         )
 

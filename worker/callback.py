@@ -6,7 +6,7 @@ import math
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session, sessionmaker
@@ -87,11 +87,16 @@ class DbCallback(Callback):
         with self.sessions.begin() as s:
             latest = s.scalar(select(Job.latest_metrics).where(Job.id == self.job_id)) or {}
             latest = {**latest, **{k: finite.get(k) for k in values}, "step": step}
-            columns = {"latest_metrics": latest}
-            if "dynamics/from_cache" in values:  # for /metrics: dynamics-cache hits and misses
-                columns["dynamics_from_cache"] = bool(values["dynamics/from_cache"])
-            if s.execute(update(Job).where(self._mine()).values(**columns)).rowcount:
+            if s.execute(update(Job).where(self._mine()).values(latest_metrics=latest)).rowcount:
                 s.add_all(JobMetric(job_id=self.job_id, name=k, step=step, value=v) for k, v in finite.items())
+
+    def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
+        """The job shows which ensemble it trains on; the cache's path on the server stays out of it. The flag apart
+        is what /metrics counts cache hits and misses by."""
+        shown = {k: v for k, v in dynamics.items() if k != "cache_path"}
+        with self.sessions.begin() as s:
+            s.execute(update(Job).where(self._mine()).values(dynamics=shown,
+                                                             dynamics_from_cache=bool(dynamics.get("from_cache"))))
 
     def on_evaluation(self, epoch: int, mean_return: float, normalized_score: float) -> None:
         with self.sessions.begin() as s:

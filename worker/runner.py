@@ -64,14 +64,12 @@ def _ran(started_at: datetime | None, now: datetime):
 
 
 def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: JobStatus, message: str, *,
-           error: tuple[str, str] | None = None, result: dict | None = None, trace: str | None = None) -> bool:
+           error: tuple[str, str] | None = None, trace: str | None = None) -> bool:
     """Record the end of this attempt, unless the job is no longer ours."""
     now = utcnow()
     values = {"finished_at": now, "heartbeat_at": now}
     if error:
         values.update(error_code=error[0], error_message=error[1])
-    if result is not None:
-        values.update(result=result)
     with sessions.begin() as s:
         started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
         if not transition(s, job_id, status, attempt=attempt, values={**values, "run_s": _ran(started_at, now)},
@@ -144,7 +142,7 @@ def _add_onnx(sessions: sessionmaker[Session], job_id: str, attempt: int, result
     for which, files in result.policy.items():
         try:
             torchscript = Path(files["torchscript"])
-            files["onnx"] = str(export_onnx(torchscript, obs_dim, torchscript.with_name(FILE_NAMES["onnx"])))
+            export_onnx(torchscript, obs_dim, torchscript.with_name(FILE_NAMES["onnx"]))
         except Exception as exc:
             log.exception("ONNX export of %s's %s policy failed", job_id, which)
             try:
@@ -230,15 +228,14 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
         return _fail(sessions, settings, job_id, attempt, code, message, traceback.format_exc())
     if result.status == "completed":
         _add_onnx(sessions, job_id, attempt, result, dataset.obs_dim)
-        if finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded", result=result.to_dict()):
+        if finish(sessions, job_id, attempt, JobStatus.SUCCEEDED, "succeeded"):
             return "succeeded"
         return _lost(sessions, settings, job_id, attempt)
     # A run stopped while fitting its dynamics model has written no checkpoint yet: say so, not that it wrote one.
     checkpointed = result.checkpoint is not None
     if callback.stop_reason == "cancelled" and finish(
             sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled at a step boundary; final checkpoint written"
-            if checkpointed else "cancelled before its first checkpoint; nothing to resume was written",
-            result=result.to_dict()):
+            if checkpointed else "cancelled before its first checkpoint; nothing to resume was written"):
         return "cancelled"
     if callback.stop_reason == "shutdown":
         # Not re-sent from here: this worker would take the message back while it shuts down. The reaper of the
@@ -247,7 +244,6 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
                 else "will start over (stopped before its first checkpoint)")
         if requeue(sessions, job_id, attempt, f"re-queued: its worker is shutting down; {then}"):
             return "requeued"
-        if finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled while its worker was shutting down",
-                  result=result.to_dict()):
+        if finish(sessions, job_id, attempt, JobStatus.CANCELLED, "cancelled while its worker was shutting down"):
             return "cancelled"
     return _lost(sessions, settings, job_id, attempt)

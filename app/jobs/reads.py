@@ -13,7 +13,7 @@ from pathlib import Path
 
 from sqlalchemy import String, any_, bindparam, select
 from sqlalchemy.dialects.postgresql import ARRAY
-from sqlalchemy.orm import Session, defer
+from sqlalchemy.orm import Session
 
 from drop_engine.policy_files import FILE_NAMES, PolicyFormat
 from drop_engine.scores import Which
@@ -31,8 +31,7 @@ from . import schemas
 POLICY_FILES = {fmt: (name, "application/json" if fmt == "metadata" else "application/octet-stream")
                 for fmt, name in FILE_NAMES.items()}
 
-# The API never shows a job's `result` (the engine's full report), so it is not read.
-_JOB_COLUMNS = [c for c in Job.__table__.c if c.name != "result"]
+_JOB_COLUMNS = list(Job.__table__.c)
 _OWNED = (Job.id == bindparam("job_id"), Job.owner_id == bindparam("owner"))
 # Jobs by id, for batched reads (FastReads.keyed): an array on PostgreSQL, an expanding IN on SQLite.
 JOBS_BY_ID = {True: select(*_JOB_COLUMNS).where(Job.id == any_(bindparam("keys", type_=ARRAY(String)))),
@@ -67,7 +66,7 @@ def _not_found(job_id: str) -> Problem:
 
 def owned_job(s: Session, owner_id: str, job_id: str) -> Job:
     """The owner's job or 404 (for the reads that hold an ORM session)."""
-    q = select(Job).where(Job.id == job_id, Job.owner_id == owner_id).options(defer(Job.result))
+    q = select(Job).where(Job.id == job_id, Job.owner_id == owner_id)
     row = s.scalar(q) if is_id(job_id, "job") else None
     if row is None:
         raise _not_found(job_id)

@@ -20,6 +20,18 @@ class JobError(BaseModel):
     message: str | None
 
 
+class JobDynamics(BaseModel):
+    """The dynamics ensemble the job trains on: the model cache's key for it (the sha256 of the dataset's content, the
+    dynamics config and the seed), whether it came from the cache, and its fit."""
+    cache_key: str | None = Field(None, description="null where the run's checkpoint predates the model cache")
+    from_cache: bool | None = Field(None, description="loaded from the model cache instead of trained for this job")
+    epochs: int = Field(description="epochs it was trained for")
+    holdout_mse: list[float] = Field(description="each member's error on the held-out rows")
+    elites: list[int] = Field(description="the members the rollouts use")
+    seconds: float = Field(description="what the fit took (in the job that trained it, if from the cache)")
+    stopped_by: str = Field(description="patience, max_epochs or max_seconds")
+
+
 class JobOut(BaseModel):
     id: str
     object: Literal["job"]
@@ -47,6 +59,7 @@ class JobOut(BaseModel):
     finished_at: str | None = timestamp()
     heartbeat_at: str | None = timestamp()
     config: dict[str, Any] = Field(description="the whole validated training config the worker runs")
+    dynamics: JobDynamics | None = Field(description="null until the job's dynamics ensemble is trained or loaded")
 
 
 class EventOut(BaseModel):
@@ -113,7 +126,7 @@ def job(row: Job) -> dict:
         "error": {"code": row.error_code, "message": row.error_message} if row.error_code else None,
         "attempts": row.attempts, "max_attempts": row.max_attempts, "max_runtime_s": row.max_runtime_s,
         "started_at": iso(row.started_at), "finished_at": iso(row.finished_at), "heartbeat_at": iso(row.heartbeat_at),
-        "config": row.config,
+        "config": row.config, "dynamics": row.dynamics,
     }
 
 

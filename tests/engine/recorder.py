@@ -18,6 +18,7 @@ class Recorder(Callback):
         self.metrics, self.evaluations, self.checkpoints, self.phases, self.progress = [], [], [], set(), None
         self.steps = defaultdict(list)  # phase -> every (step, total) reported in it
         self.asks, self.stop_in, self.after, self.stopping, self.starts = Counter(), stop_in, after, False, []
+        self.dynamics = []
 
     def asked_in(self, fn) -> int:
         return self.asks[_code(fn)]
@@ -32,6 +33,9 @@ class Recorder(Callback):
 
     def on_metrics(self, metrics, step):
         self.metrics.append((step, dict(metrics)))
+
+    def on_dynamics(self, dynamics):
+        self.dynamics.append(dict(dynamics))
 
     def on_evaluation(self, epoch, mean_return, normalized_score):
         self.evaluations.append((epoch, mean_return, normalized_score))

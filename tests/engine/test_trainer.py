@@ -215,8 +215,10 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset, uninterr
     result_b = b2.run()
 
     assert result_b.status == "completed"
-    # Each run says where it starts, so a caller can drop what it recorded past that checkpoint.
+    # Each run says where it starts, so a caller can drop what it recorded past that checkpoint, and which ensemble
+    # it trains on: the resumed one the ensemble its checkpoint holds.
     assert (whole.starts, first.starts, second.starts) == ([None], [None], [(b1.epoch, b1.step_in_epoch)])
+    assert first.dynamics == second.dynamics == [result_b.dynamics] and result_b.dynamics["epochs"] >= 1
     for (name, pa), pb in zip(a.sac.state_dict().items(), b2.sac.state_dict().values()):
         assert torch.equal(pa, pb), name
     for (name, pa), pb in zip(a.dice.state_dict().items(), b2.dice.state_dict().values()):
@@ -230,9 +232,11 @@ def test_stop_and_resume_equals_uninterrupted(tmp_path, hopper_dataset, uninterr
 
 
 def test_stop_during_dynamics_leaves_no_checkpoint(tmp_path, hopper_dataset):
-    result = train(hopper_dataset, _config("mopo"), tmp_path, Recorder(stop_in=train_dynamics, after=3))
+    recorder = Recorder(stop_in=train_dynamics, after=3)
+    result = train(hopper_dataset, _config("mopo"), tmp_path, recorder)
     assert result.status == "stopped" and result.epochs == 0 and result.checkpoint is None
     assert not list_checkpoints(tmp_path / "checkpoints")
+    assert result.dynamics is None and recorder.dynamics == [], "a half-fitted ensemble is no run's model"
 
 
 def test_same_seed_same_numbers(tmp_path, hopper_dataset):

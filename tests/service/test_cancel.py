@@ -24,6 +24,8 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
             break
         time.sleep(0.2)
     assert job["status"] == "running", job
+    # Training has begun, so the job already names the ensemble it trains on.
+    assert job["dynamics"]["cache_key"] and job["dynamics"]["from_cache"] in (True, False)
 
     # The single worker is busy, so the second job is still queued: it is cancelled at once.
     r = alice.post(f"/v1/jobs/{queued['id']}/cancel")
@@ -41,7 +43,7 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     assert (again.status_code, again.json()["status"]) in ((202, "cancelling"), (200, "cancelled")), again.json()
     done = alice.api.wait(running["id"], timeout=60)  # its next step is ms away; the niced pool may wait for CPU
     assert done["status"] == "cancelled", done
-    assert done["progress"]["epoch"] < 500
+    assert done["progress"]["epoch"] < 500 and done["dynamics"] == job["dynamics"]
     assert alice.post(f"/v1/jobs/{running['id']}/cancel").status_code == 200
 
     events = alice.get(f"/v1/jobs/{running['id']}/events", params={"limit": 1000}).json()["data"]
@@ -61,6 +63,7 @@ def test_cancel_running_and_queued(alice, worker, hopper_file):
     time.sleep(2)
     job = alice.get(f"/v1/jobs/{queued['id']}").json()
     assert job["status"] == "cancelled" and job["attempts"] == 0 and job["started_at"] is None
+    assert job["dynamics"] is None
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
 
 
@@ -87,6 +90,7 @@ def test_cancel_inside_a_dynamics_epoch(alice, worker, hopper_file, tmp_path):
     assert (done["progress"] or {}).get("step", 0) == 0, "stopped inside the first epoch"
     events = alice.get(f"/v1/jobs/{job['id']}/events", params={"limit": 1000}).json()["data"]
     assert events[-1]["message"] == "cancelled before its first checkpoint; nothing to resume was written"
+    assert done["dynamics"] is None, "a half-fitted ensemble is not the job's"
     assert not any(e["type"] == "checkpoint" for e in events)
     assert alice.get(f"/v1/jobs/{job['id']}/checkpoints").json()["data"] == []
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204

@@ -1,11 +1,12 @@
 """The service refuses an unmigrated database, and `drop db upgrade` fixes it; upgrading keeps recorded jobs whole."""
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 from typing import Iterator
 
 import pytest
-from sqlalchemy import text
+from sqlalchemy import inspect, text
 from sqlalchemy.exc import IntegrityError
 
 from app.cli import main
@@ -180,3 +181,39 @@ def test_row_ids_count_past_32_bits_after_0006(backend, tmp_path):
         engine.dispose()
     for table, found in ids.items():
         assert found[0] == 1 and found[-1] == 2**31 + 1, (table, found)
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_recorded_jobs_keep_their_dynamics_through_0009(backend, tmp_path):
+    """0009 replaces jobs.result (the engine's report, server paths in it) by jobs.dynamics, which the API shows: a
+    recorded job's ensemble moves over less its path, a job without one stays without, and the downgrade puts it
+    back."""
+    from alembic import command
+
+    from kernel.db import alembic_config
+
+    fit = {"epochs": 3, "holdout_mse": [0.5, 0.4], "elites": [1], "seconds": 2.0, "stopped_by": "max_epochs",
+           "cache_key": "ab" * 32, "from_cache": False}
+    with database() if backend == "postgresql" else _no_database() as pg_url:
+        url, engine = _old_database(tmp_path, "0008", pg_url)
+        with engine.begin() as conn:
+            for job_id in ("job_trained", "job_queued"):
+                _job_row(conn, job_id, "succeeded")
+            conn.execute(text("UPDATE jobs SET result = :result WHERE id = 'job_trained'"), {"result": json.dumps(
+                {"status": "completed", "policy": {"last": {"torchscript": "/srv/x/policy.pt"}},
+                 "dynamics": {**fit, "cache_path": "/srv/drop/models/abab.pt"}})})
+        upgrade(url)
+        with engine.connect() as conn:
+            upgraded = {r.id: _loaded(r.dynamics) for r in conn.execute(text("SELECT id, dynamics FROM jobs"))}
+            columns = {c["name"] for c in inspect(conn).get_columns("jobs")}
+        command.downgrade(alembic_config(url), "0008")
+        with engine.connect() as conn:
+            downgraded = {r.id: _loaded(r.result) for r in conn.execute(text("SELECT id, result FROM jobs"))}
+        engine.dispose()
+    assert upgraded == {"job_trained": fit, "job_queued": None} and "result" not in columns
+    assert downgraded == {"job_trained": {"dynamics": fit}, "job_queued": None}
+
+
+def _loaded(value):
+    """A JSON column's value as text (SQLite, and a textual SELECT) or already parsed (PostgreSQL's json)."""
+    return json.loads(value) if isinstance(value, str) else value
