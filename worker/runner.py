@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from sqlalchemy import func, select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.exc_chain import causes
@@ -32,6 +32,7 @@ from .callback import DbCallback
 from .failures import unexpected_failure
 
 log = logging.getLogger("drop.worker")
+FINISH_RETRY_S = (1.0, 2.0, 4.0, 8.0)
 
 
 def worker_name() -> str:
@@ -65,19 +66,40 @@ def _ran(started_at: datetime | None, now: datetime):
 
 def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: JobStatus, message: str, *,
            error: tuple[str, str] | None = None, trace: str | None = None) -> bool:
-    """Record the end of this attempt, unless the job is no longer ours."""
+    """Record the end of this attempt, unless the job is no longer ours.
+
+    A lost database connection is tried again for about 15 s (the heartbeat keeps the job this attempt's meanwhile):
+    failing here would leave a finished run to the reaper, and cost it another attempt, or its last."""
     now = utcnow()
     values = {"finished_at": now, "heartbeat_at": now}
     if error:
         values.update(error_code=error[0], error_message=error[1])
-    with sessions.begin() as s:
-        started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
-        if not transition(s, job_id, status, attempt=attempt, values={**values, "run_s": _ran(started_at, now)},
-                          message=message, data={"error": {"code": error[0], "message": error[1]}} if error else None):
-            return False
-        if trace:
-            s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
-    return True
+    for retry, delay in enumerate((*FINISH_RETRY_S, None)):
+        try:
+            with sessions.begin() as s:
+                if retry and _recorded(s, job_id, attempt, status, now):
+                    return True
+                started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
+                if not transition(s, job_id, status, attempt=attempt, values={**values, "run_s": _ran(started_at, now)},
+                                  message=message,
+                                  data={"error": {"code": error[0], "message": error[1]}} if error else None):
+                    return False
+                if trace:
+                    s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
+            return True
+        except (OperationalError, InterfaceError):
+            if delay is None:
+                raise
+            log.warning("job %s: recording %s failed on the database connection; again in %s s", job_id, status.value,
+                        delay, exc_info=True)
+            time.sleep(delay)
+    return False  # not reached: the last try returns or raises
+
+
+def _recorded(s: Session, job_id: str, attempt: int, status: JobStatus, finished_at: datetime) -> bool:
+    """Whether an earlier try of this record committed though its answer was lost: the row holds its very write."""
+    return s.scalar(select(Job.id).where(Job.id == job_id, Job.attempts == attempt, Job.status == status.value,
+                                         Job.finished_at == finished_at)) is not None
 
 
 class Heartbeat(threading.Thread):

@@ -2,9 +2,16 @@
 diverging run fails with `training_diverged`, and a database error's message never shows its SQL."""
 from __future__ import annotations
 
+import psycopg
+import pytest
+from sqlalchemy import event, text
+from sqlalchemy.exc import OperationalError
+
 from drop_engine.config import build_config
 from kernel.ids import new_id
+from kernel.job_state import JobStatus
 from kernel.models import Dataset, Job
+from worker import runner
 from worker.runner import run_job
 
 # The temperature runs away (tests/engine/test_divergence.py): the critic's loss overflows by the first epoch's end.
@@ -67,3 +74,42 @@ def test_database_error_message_shows_no_sql(app, settings, alice, hopper_file, 
     trace = alice.get(f"/v1/jobs/{job.id}/events").json()["data"][-1]
     assert trace["type"] == "traceback" and "[SQL: " in trace["message"]  # SQLAlchemy's statement, for the owner
     assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+@pytest.mark.parametrize("lost", ["before", "after"])
+def test_a_lost_connection_does_not_cost_a_finished_run_its_attempt(app, settings, alice, hopper_file, monkeypatch,
+                                                                     lost):
+    """The database connection goes as the worker records a finished run: the server ends it before the write, or
+    the write commits and its answer is lost. The record is tried again, and the job succeeds on its first attempt
+    with one status event for it."""
+    ds = alice.api.upload_dataset(hopper_file)
+    sessions = app.state.sessions
+    with sessions.begin() as s:
+        dataset = s.get(Dataset, ds["id"])
+        job = Job(id=new_id("job"), owner_id=dataset.owner_id, dataset_id=ds["id"], algorithm="mopo", env="hopper",
+                  preset="smoke", overrides={}, seed=0, status="queued", max_attempts=3, max_runtime_s=600,
+                  config=build_config("mopo", env="hopper", preset="smoke", overrides={"epochs": 1}).model_dump(
+                      mode="json"))
+        s.add(job)
+    real, dropped = runner.transition, []
+
+    def dropping(s, job_id, to, **kwargs):
+        if to is JobStatus.SUCCEEDED and not dropped:
+            dropped.append(lost)
+            if lost == "before":  # the server ends this session's connection: the statement fails, nothing commits
+                s.execute(text("SELECT pg_terminate_backend(pg_backend_pid())"))
+            event.listen(s, "after_commit", _answer_lost, once=True)
+        return real(s, job_id, to, **kwargs)
+
+    monkeypatch.setattr(runner, "FINISH_RETRY_S", (0.1,))
+    monkeypatch.setattr(runner, "transition", dropping)
+    assert run_job(settings, sessions, job.id) == "succeeded" and dropped == [lost]
+    got = alice.get(f"/v1/jobs/{job.id}").json()
+    assert got["status"] == "succeeded" and got["attempts"] == 1 and got["error"] is None
+    events = alice.get(f"/v1/jobs/{job.id}/events", params={"limit": 1000}).json()["data"]
+    assert [e["data"]["status"] for e in events if e["type"] == "status"] == ["running", "succeeded"]
+    assert alice.delete(f"/v1/datasets/{ds['id']}").status_code == 204
+
+
+def _answer_lost(session) -> None:
+    raise OperationalError("COMMIT", None, psycopg.OperationalError("server closed the connection unexpectedly"))
