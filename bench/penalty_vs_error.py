@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=10_000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bench/results")
+    p.add_argument("--stem", help="output file names, without suffix (default: penalty_vs_error_ENV)")
     args = p.parse_args(argv)
     trainer, data = restore(args.dataset, args.run)
     cfg = trainer.cfg
@@ -122,10 +123,11 @@ def main(argv: list[str] | None = None) -> int:
                              "model_rollout": float(rollout["error"].mean())}}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"penalty_vs_error_{cfg.env}"
+    stem = args.stem or f"penalty_vs_error_{cfg.env}"
     (out / f"{stem}.json").write_text(json.dumps(result, indent=2))
     scatter(groups, out / f"{stem}.png")
-    lines = [f"# Penalty vs true model error ({cfg.env}, {args.samples} offline + {args.samples} rollout samples)", "",
+    lines = [f"# Penalty vs true model error ({cfg.task and f'{cfg.env}-{cfg.task}' or cfg.env}, {args.samples} offline + "
+             f"{args.samples} rollout samples)", "",
              "| samples | penalty | Spearman | Pearson |", "|---|---|---|---|"]
     for group, corr in result["correlations"].items():
         for name, c in corr.items():
