@@ -56,11 +56,30 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
     return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo}
 
 
+@torch.no_grad()
+def distance_to_data(trainer: Trainer, obs, act, reference: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Each (s, a)'s distance to the nearest of the `reference` data rows, in the dynamics model's standardised input
+    space: how far from the data it lies, what a density ratio ranks by."""
+    model = trainer.model
+
+    def scale(o, a) -> torch.Tensor:
+        return (torch.cat([torch.as_tensor(o), torch.as_tensor(a)], -1) - model.in_mean) / model.in_std
+
+    ref = scale(trainer.data.observations[reference], trainer.data.actions[reference])
+    x = scale(obs, act)
+    return torch.cat([torch.cdist(x[i:i + chunk], ref).min(1).values for i in range(0, len(x), chunk)]).numpy()
+
+
 def correlations(rows: dict[str, np.ndarray]) -> dict:
+    """Each penalty against the true error; and the penalties and the error against the distance from the data
+    (where the error does not rise with the distance, no penalty that measures the distance can track the error)."""
     out = {}
     for name in ("drop", "mopo"):
         out[name] = {"spearman": float(stats.spearmanr(rows[name], rows["error"]).statistic),
                      "pearson": float(stats.pearsonr(rows[name], rows["error"]).statistic)}
+    if "distance" in rows:
+        out["vs_distance"] = {name: float(stats.spearmanr(rows[name], rows["distance"]).statistic)
+                              for name in ("drop", "mopo", "error")}
     return out
 
 
@@ -112,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
                   trainer.termination, buffer)
     obs, act, *_ = buffer.take(torch.randperm(len(buffer))[: args.samples])
     rollout = penalties_and_error(trainer, obs.numpy(), act.numpy())
+    # The data's rows outside the offline sample (up to 100,000), so an offline row is not its own nearest.
+    reference = rng.permutation(np.setdiff1d(np.arange(len(data)), idx))[:100_000]
+    offline["distance"] = distance_to_data(trainer, data.observations[idx], data.actions[idx], reference)
+    rollout["distance"] = distance_to_data(trainer, obs.numpy(), act.numpy(), reference)
 
     groups = {"offline": offline, "model rollout": rollout}
     both = {k: np.concatenate([offline[k], rollout[k]]) for k in offline}
@@ -120,18 +143,26 @@ def main(argv: list[str] | None = None) -> int:
               "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
                                "all": correlations(both)},
               "mean_error": {"offline": float(offline["error"].mean()),
-                             "model_rollout": float(rollout["error"].mean())}}
+                             "model_rollout": float(rollout["error"].mean())},
+              "mean_distance": {"offline": float(offline["distance"].mean()),
+                                "model_rollout": float(rollout["distance"].mean())}}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"penalty_vs_error_{cfg.env}"
     (out / f"{stem}.json").write_text(json.dumps(result, indent=2))
     scatter(groups, out / f"{stem}.png")
-    lines = [f"# Penalty vs true model error ({cfg.task and f'{cfg.env}-{cfg.task}' or cfg.env}, {args.samples} offline + "
-             f"{args.samples} rollout samples)", "",
+    name = f"{cfg.env}-{cfg.task}" if cfg.task else cfg.env
+    lines = [f"# Penalty vs true model error ({name}, {args.samples} offline + {args.samples} rollout samples)", "",
              "| samples | penalty | Spearman | Pearson |", "|---|---|---|---|"]
     for group, corr in result["correlations"].items():
-        for name, c in corr.items():
-            lines.append(f"| {group} | {name} | {c['spearman']:.3f} | {c['pearson']:.3f} |")
+        for name in ("drop", "mopo"):
+            lines.append(f"| {group} | {name} | {corr[name]['spearman']:.3f} | {corr[name]['pearson']:.3f} |")
+    lines += ["", "Spearman with the distance to the nearest data row (standardised (s, a); mean distance offline "
+              f"{result['mean_distance']['offline']:.2f}, rollout {result['mean_distance']['model_rollout']:.2f}):",
+              "", "| samples | DROP penalty | MOPO penalty | true error |", "|---|---|---|---|"]
+    for group, corr in result["correlations"].items():
+        d = corr["vs_distance"]
+        lines.append(f"| {group} | {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |")
     (out / f"{stem}.md").write_text("\n".join(lines) + f"\n\n![scatter]({stem}.png)\n")
     print("\n".join(lines))
     return 0
