@@ -96,6 +96,11 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
     return False  # not reached: the last try returns or raises
 
 
+def _connection_lost(exc: BaseException) -> bool:
+    """The database connection failed (the server went, restarted or ended the session), not a statement."""
+    return any(isinstance(e, (OperationalError, InterfaceError)) for e in causes(exc))
+
+
 def _recorded(s: Session, job_id: str, attempt: int, status: JobStatus, finished_at: datetime) -> bool:
     """Whether an earlier try of this record committed though its answer was lost: the row holds its very write."""
     return s.scalar(select(Job.id).where(Job.id == job_id, Job.attempts == attempt, Job.status == status.value,
@@ -184,7 +189,8 @@ def release_unclaimed(sessions: sessionmaker[Session], job_id: str) -> None:
 
 def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
             shutting_down: Callable[[], bool] = lambda: False) -> str:
-    """Run the job if we can claim it; returns the final status, 'requeued', or 'skipped'.
+    """Run the job if we can claim it; returns the final status, 'requeued', 'skipped', or 'interrupted' (the
+    database connection failed: the job is left to the reaper).
 
     `shutting_down` is polled between steps: when it turns true the run stops with a checkpoint and the job goes back
     to the queue, to resume from that checkpoint on the next worker."""
@@ -210,6 +216,15 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job_id: str,
         log.info("claimed job %s, attempt %s", job_id, attempt)
         try:
             status = _train_and_record(sessions, job, dataset, config_data, settings, attempt, callback, started)
+        except Exception as exc:
+            if not _connection_lost(exc):
+                raise
+            # Not recorded, as the database is what failed: with the heartbeat stopped, a reaper re-queues the job
+            # (the attempt counts) and the next attempt resumes from the newest checkpoint, or fails it as
+            # worker_lost once its attempts are used up.
+            log.warning("job %s: attempt %s lost its database connection; left to the reaper", job_id, attempt,
+                        exc_info=True)
+            status = "interrupted"
         finally:
             heartbeat.stop()
         log.info("job %s attempt %s ended: %s", job_id, attempt, status)
@@ -244,6 +259,8 @@ def _train_and_record(sessions: sessionmaker[Session], job: Job, dataset: Datase
                 or time.monotonic() - started >= job.max_runtime_s):
             return _fail(sessions, settings, job_id, attempt, "timeout",
                          f"the attempt ran past max_runtime_s={job.max_runtime_s}", traceback.format_exc())
+        if _connection_lost(exc):  # a blip of the database, not the job's failure: run_job leaves it to the reaper
+            raise
         log.exception("job %s failed", job_id)
         # A full or read-only disk fails the job rather than retrying it: another attempt would meet the same disk.
         code, message = storage_failure(exc, "the run's checkpoint or policy") or unexpected_failure(exc)

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import psycopg
 import pytest
-from sqlalchemy import event, text
+from sqlalchemy import event, select, text
 from sqlalchemy.exc import OperationalError
 
 from drop_engine.config import build_config
 from kernel.ids import new_id
 from kernel.job_state import JobStatus
-from kernel.models import Dataset, Job
+from kernel.models import Dataset, Job, JobEvent
 from worker import runner
 from worker.runner import run_job
 
@@ -113,3 +113,58 @@ def test_a_lost_connection_does_not_cost_a_finished_run_its_attempt(app, setting
 
 def _answer_lost(session) -> None:
     raise OperationalError("COMMIT", None, psycopg.OperationalError("server closed the connection unexpectedly"))
+
+
+def test_a_lost_connection_mid_run_hands_the_job_to_the_reaper(own_settings, hopper_file, monkeypatch):
+    """The database ends the worker's connection while it records an evaluation: the attempt records nothing (it
+    cannot) and is not a failure of the job; the reaper re-queues it once its heartbeat is stale, and the next attempt
+    resumes from the checkpoint and succeeds. On a database of the test's own, so no other worker's reaper takes it."""
+    from kernel.db import make_engine, make_sessionmaker
+    from kernel.models import JobEvaluation, Owner
+    from worker.callback import DbCallback
+    from worker.reaper import reap
+
+    engine = make_engine(own_settings.database_url)
+    sessions = make_sessionmaker(engine)
+    with sessions.begin() as s:
+        owner = Owner(id=new_id("own"), name=f"blip-{new_id('x')}")
+        dataset = Dataset(id=new_id("ds"), owner_id=owner.id, name="hopper", format="hdf5", sha256="",
+                          size_bytes=1, path=str(hopper_file), env="hopper", obs_dim=11, act_dim=3, report={})
+        s.add(owner)
+        s.flush()
+        s.add(dataset)
+        job = Job(id=new_id("job"), owner_id=owner.id, dataset_id=dataset.id, algorithm="mopo", env="hopper",
+                  preset="smoke", overrides={}, seed=0, status="queued", max_attempts=3, max_runtime_s=600,
+                  config=build_config("mopo", env="hopper", preset="smoke", overrides={"epochs": 2}).model_dump(
+                      mode="json"))
+        s.add(job)
+    real, dropped = DbCallback.on_evaluation, []
+
+    def dropping(self, epoch, mean_return, normalized_score):
+        if epoch == 2 and not dropped:
+            dropped.append(epoch)
+            with self.sessions() as s:
+                s.execute(text("SELECT pg_terminate_backend(pg_backend_pid())"))
+        return real(self, epoch, mean_return, normalized_score)
+
+    monkeypatch.setattr(runner, "FINISH_RETRY_S", ())
+    monkeypatch.setattr(DbCallback, "on_evaluation", dropping)
+    try:
+        assert run_job(own_settings, sessions, job.id) == "interrupted" and dropped == [2]
+        with sessions() as s:
+            row = s.get(Job, job.id)
+            assert (row.status, row.attempts, row.error_code) == ("running", 1, None)
+        stale = own_settings.model_copy(update={"stale_after_s": 0})
+        assert reap(sessions, stale, lambda job_id, runtime: None) == [job.id]
+        assert run_job(own_settings, sessions, job.id) == "succeeded"
+        with sessions() as s:
+            row = s.get(Job, job.id)
+            epochs = s.scalars(select(JobEvaluation.epoch).where(JobEvaluation.job_id == job.id)
+                               .order_by(JobEvaluation.epoch)).all()
+            messages = s.scalars(select(JobEvent.message).where(JobEvent.job_id == job.id, JobEvent.type == "status")
+                                 .order_by(JobEvent.id)).all()
+        assert (row.status, row.attempts, row.error_code) == ("succeeded", 2, None)
+        assert epochs == [1, 2], "one history: the lost attempt's epoch 1, the resumed attempt's epoch 2"
+        assert messages[1].startswith("re-queued") and messages[1].endswith("will resume from checkpoint")
+    finally:
+        engine.dispose()
