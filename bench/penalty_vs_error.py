@@ -133,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     rollout = penalties_and_error(trainer, obs.numpy(), act.numpy())
     # The data's rows outside the offline sample (up to 100,000), so an offline row is not its own nearest.
     reference = rng.permutation(np.setdiff1d(np.arange(len(data)), idx))[:100_000]
+    if not len(reference):  # the sample is the whole file: each offline row is then its own nearest
+        reference = np.arange(len(data))
     offline["distance"] = distance_to_data(trainer, data.observations[idx], data.actions[idx], reference)
     rollout["distance"] = distance_to_data(trainer, obs.numpy(), act.numpy(), reference)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from sqlalchemy import func, select, update
-from sqlalchemy.exc import IntegrityError, InterfaceError, OperationalError
+from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError
 from sqlalchemy.orm import Session, sessionmaker
 
 from kernel.exc_chain import causes
@@ -68,8 +68,9 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
            error: tuple[str, str] | None = None, trace: str | None = None) -> bool:
     """Record the end of this attempt, unless the job is no longer ours.
 
-    A lost database connection is tried again for about 15 s (the heartbeat keeps the job this attempt's meanwhile):
-    failing here would leave a finished run to the reaper, and cost it another attempt, or its last."""
+    A lost database connection is tried again four times over 15 s of pauses (the heartbeat keeps the job this
+    attempt's meanwhile): failing here would leave a finished run to the reaper, and cost it another attempt, or its
+    last."""
     now = utcnow()
     values = {"finished_at": now, "heartbeat_at": now}
     if error:
@@ -77,18 +78,18 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
     for retry, delay in enumerate((*FINISH_RETRY_S, None)):
         try:
             with sessions.begin() as s:
-                if retry and _recorded(s, job_id, attempt, status, now):
-                    return True
                 started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
                 if not transition(s, job_id, status, attempt=attempt, values={**values, "run_s": _ran(started_at, now)},
                                   message=message,
                                   data={"error": {"code": error[0], "message": error[1]}} if error else None):
-                    return False
+                    # A retry whose earlier commit went through, its answer lost, finds its own write (after the
+                    # UPDATE, which waited for that commit if it was still in flight).
+                    return retry > 0 and _recorded(s, job_id, attempt, status, now)
                 if trace:
                     s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
             return True
-        except (OperationalError, InterfaceError):
-            if delay is None:
+        except DBAPIError as exc:
+            if delay is None or not _connection_lost(exc):
                 raise
             log.warning("job %s: recording %s failed on the database connection; again in %s s", job_id, status.value,
                         delay, exc_info=True)
@@ -97,8 +98,10 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
 
 
 def _connection_lost(exc: BaseException) -> bool:
-    """The database connection failed (the server went, restarted or ended the session), not a statement."""
-    return any(isinstance(e, (OperationalError, InterfaceError)) for e in causes(exc))
+    """The database connection failed (the server went, restarted or ended the session), not a statement: a
+    statement's own error (a timeout, a lock, a full disk) fails the job and records why."""
+    return any(isinstance(e, InterfaceError) or (isinstance(e, DBAPIError) and e.connection_invalidated)
+               for e in causes(exc))
 
 
 def _recorded(s: Session, job_id: str, attempt: int, status: JobStatus, finished_at: datetime) -> bool:

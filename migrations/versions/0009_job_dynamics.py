@@ -28,10 +28,11 @@ def upgrade() -> None:
     with op.batch_alter_table('jobs', schema=None) as batch_op:
         batch_op.add_column(sa.Column('dynamics', sa.JSON(), nullable=True))
     conn = op.get_bind()
-    for job_id, result in conn.execute(sa.select(_jobs.c.id, _jobs.c.result).where(_jobs.c.result.isnot(None))):
+    recorded = conn.execute(sa.select(_jobs.c.id, _jobs.c.result).where(_jobs.c.result.isnot(None))).all()
+    for job_id, result in recorded:
         dynamics = (_parsed(result) or {}).get('dynamics')
-        if dynamics:
-            shown = {k: v for k, v in dynamics.items() if k != 'cache_path'}
+        if dynamics:  # a job of before the model cache has no key: null, as the API documents
+            shown = {'cache_key': None, 'from_cache': None, **{k: v for k, v in dynamics.items() if k != 'cache_path'}}
             conn.execute(_jobs.update().where(_jobs.c.id == job_id).values(dynamics=shown))
     with op.batch_alter_table('jobs', schema=None) as batch_op:
         batch_op.drop_column('result')
@@ -41,7 +42,8 @@ def downgrade() -> None:
     with op.batch_alter_table('jobs', schema=None) as batch_op:
         batch_op.add_column(sa.Column('result', sa.JSON(), nullable=True))
     conn = op.get_bind()
-    for job_id, dynamics in conn.execute(sa.select(_jobs.c.id, _jobs.c.dynamics).where(_jobs.c.dynamics.isnot(None))):
+    shown = conn.execute(sa.select(_jobs.c.id, _jobs.c.dynamics).where(_jobs.c.dynamics.isnot(None))).all()
+    for job_id, dynamics in shown:
         conn.execute(_jobs.update().where(_jobs.c.id == job_id).values(result={'dynamics': _parsed(dynamics)}))
     with op.batch_alter_table('jobs', schema=None) as batch_op:
         batch_op.drop_column('dynamics')

@@ -112,13 +112,16 @@ def test_a_lost_connection_does_not_cost_a_finished_run_its_attempt(app, setting
 
 
 def _answer_lost(session) -> None:
-    raise OperationalError("COMMIT", None, psycopg.OperationalError("server closed the connection unexpectedly"))
+    raise OperationalError("COMMIT", None, psycopg.OperationalError("server closed the connection unexpectedly"),
+                           connection_invalidated=True)
 
 
-def test_a_lost_connection_mid_run_hands_the_job_to_the_reaper(own_settings, hopper_file, monkeypatch):
+@pytest.mark.parametrize("fault", ["connection", "statement"])
+def test_a_lost_connection_mid_run_hands_the_job_to_the_reaper(own_settings, hopper_file, monkeypatch, fault):
     """The database ends the worker's connection while it records an evaluation: the attempt records nothing (it
     cannot) and is not a failure of the job; the reaper re-queues it once its heartbeat is stale, and the next attempt
-    resumes from the checkpoint and succeeds. On a database of the test's own, so no other worker's reaper takes it."""
+    resumes from the checkpoint and succeeds. A statement's own error on a live connection (here a statement timeout)
+    is the job's failure, recorded at once. On a database of the test's own, so no other worker's reaper takes it."""
     from kernel.db import make_engine, make_sessionmaker
     from kernel.models import JobEvaluation, Owner
     from worker.callback import DbCallback
@@ -143,13 +146,23 @@ def test_a_lost_connection_mid_run_hands_the_job_to_the_reaper(own_settings, hop
     def dropping(self, epoch, mean_return, normalized_score):
         if epoch == 2 and not dropped:
             dropped.append(epoch)
-            with self.sessions() as s:
-                s.execute(text("SELECT pg_terminate_backend(pg_backend_pid())"))
+            with self.sessions.begin() as s:
+                if fault == "connection":
+                    s.execute(text("SELECT pg_terminate_backend(pg_backend_pid())"))
+                s.execute(text("SET LOCAL statement_timeout = 1"))
+                s.execute(text("SELECT pg_sleep(1)"))
         return real(self, epoch, mean_return, normalized_score)
 
     monkeypatch.setattr(runner, "FINISH_RETRY_S", ())
     monkeypatch.setattr(DbCallback, "on_evaluation", dropping)
     try:
+        if fault == "statement":
+            assert run_job(own_settings, sessions, job.id) == "failed" and dropped == [2]
+            with sessions() as s:
+                row = s.get(Job, job.id)
+                assert (row.status, row.attempts, row.error_code) == ("failed", 1, "internal_error")
+                assert "database error (OperationalError)" in row.error_message
+            return
         assert run_job(own_settings, sessions, job.id) == "interrupted" and dropped == [2]
         with sessions() as s:
             row = s.get(Job, job.id)

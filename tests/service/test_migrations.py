@@ -197,11 +197,13 @@ def test_recorded_jobs_keep_their_dynamics_through_0009(backend, tmp_path):
     with database() if backend == "postgresql" else _no_database() as pg_url:
         url, engine = _old_database(tmp_path, "0008", pg_url)
         with engine.begin() as conn:
-            for job_id in ("job_trained", "job_queued"):
+            for job_id in ("job_trained", "job_queued", "job_uncached"):
                 _job_row(conn, job_id, "succeeded")
             conn.execute(text("UPDATE jobs SET result = :result WHERE id = 'job_trained'"), {"result": json.dumps(
                 {"status": "completed", "policy": {"last": {"torchscript": "/srv/x/policy.pt"}},
                  "dynamics": {**fit, "cache_path": "/srv/drop/models/abab.pt"}})})
+            conn.execute(text("UPDATE jobs SET result = :result WHERE id = 'job_uncached'"), {"result": json.dumps(
+                {"dynamics": {k: v for k, v in fit.items() if k not in ("cache_key", "from_cache")}})})
         upgrade(url)
         with engine.connect() as conn:
             upgraded = {r.id: _loaded(r.dynamics) for r in conn.execute(text("SELECT id, dynamics FROM jobs"))}
@@ -210,8 +212,9 @@ def test_recorded_jobs_keep_their_dynamics_through_0009(backend, tmp_path):
         with engine.connect() as conn:
             downgraded = {r.id: _loaded(r.result) for r in conn.execute(text("SELECT id, result FROM jobs"))}
         engine.dispose()
-    assert upgraded == {"job_trained": fit, "job_queued": None} and "result" not in columns
-    assert downgraded == {"job_trained": {"dynamics": fit}, "job_queued": None}
+    unkeyed = {**fit, "cache_key": None, "from_cache": None}  # a job of before the model cache: null, as documented
+    assert upgraded == {"job_trained": fit, "job_queued": None, "job_uncached": unkeyed} and "result" not in columns
+    assert downgraded == {"job_trained": {"dynamics": fit}, "job_queued": None, "job_uncached": {"dynamics": unkeyed}}
 
 
 def _loaded(value):
