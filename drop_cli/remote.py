@@ -129,10 +129,20 @@ def jobs_status(client: DropClient, job_id: str) -> None:
     fields = {"dataset": job["dataset_id"], "algorithm": job["algorithm"], "env": job["env"],
               "preset": job["preset"], "seed": job["seed"], "attempts": f"{job['attempts']}/{job['max_attempts']}",
               "best epoch": job["best_epoch"], "final score": None if final is None else f"{final:.1f}",
+              "dynamics": _dynamics(job["dynamics"]),
               "created": job["created_at"], "started": job["started_at"], "finished": job["finished_at"]}
     for key, value in fields.items():
         if value is not None:
             click.echo(f"  {key:<12} {value}")
+
+
+def _dynamics(dynamics: dict | None) -> str | None:
+    """The ensemble a job trains on, in one line: its model-cache key and where it came from."""
+    if dynamics is None:
+        return None
+    source = {True: "from the model cache", False: "trained for this job", None: "source unknown"}
+    return (f"{(dynamics['cache_key'] or '-')[:16]} ({source[dynamics['from_cache']]}; {dynamics['epochs']} epochs, "
+            f"stopped by {dynamics['stopped_by']})")
 
 
 @jobs.command("logs")

@@ -120,6 +120,9 @@ def test_cli(deployment, hopper_file, tmp_path):
     assert drop("jobs", "logs", job_id).stdout == logs.stdout
     status = drop("jobs", "status", job_id)
     assert status.exit_code == 0 and status.stdout.startswith(f"{job_id}: succeeded"), status.output
+    with DropClient(server, token) as client:  # the model it trained on, by its cache key
+        key = client.get_job(job_id)["dynamics"]["cache_key"]
+    assert f"dynamics     {key[:16]} (" in status.stdout, status.output
     assert job_id in drop("jobs", "list", "--status", "succeeded").stdout
 
     for which in ("last", "best"):
