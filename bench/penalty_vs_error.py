@@ -80,6 +80,9 @@ def correlations(rows: dict[str, np.ndarray]) -> dict:
     if "distance" in rows:
         out["vs_distance"] = {name: float(stats.spearmanr(rows[name], rows["distance"]).statistic)
                               for name in ("drop", "mopo", "error")}
+    if "policy_logp" in rows:
+        out["vs_policy_logp"] = {name: float(stats.spearmanr(rows[name], rows["policy_logp"]).statistic)
+                                 for name in ("drop", "mopo", "error")}
     return out
 
 
@@ -136,10 +139,14 @@ def main(argv: list[str] | None = None) -> int:
     if not len(reference):  # the sample is the whole file: each offline row is then its own nearest
         reference = np.arange(len(data))
     offline["distance"] = distance_to_data(trainer, data.observations[idx], data.actions[idx], reference)
+    # On data rows the true ratio carries pi(a|s)/beta(a|s): a ratio estimate that knows the policy rises with it.
+    with torch.no_grad():
+        offline["policy_logp"] = trainer.sac.actor.log_prob(torch.as_tensor(data.observations[idx]),
+                                                            torch.as_tensor(data.actions[idx])).numpy()
     rollout["distance"] = distance_to_data(trainer, obs.numpy(), act.numpy(), reference)
 
     groups = {"offline": offline, "model rollout": rollout}
-    both = {k: np.concatenate([offline[k], rollout[k]]) for k in offline}
+    both = {k: np.concatenate([offline[k], rollout[k]]) for k in rollout}
     result = {"env": cfg.env, "run": args.run, "dataset": args.dataset, "samples": args.samples,
               "dataset_attrs": {k: str(v) for k, v in data.attrs.items()},
               "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
@@ -165,6 +172,10 @@ def main(argv: list[str] | None = None) -> int:
     for group, corr in result["correlations"].items():
         d = corr["vs_distance"]
         lines.append(f"| {group} | {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |")
+    d = result["correlations"]["offline"]["vs_policy_logp"]
+    lines += ["", "Spearman with the policy's log-likelihood of the data action, log pi(a|s), on the offline rows (the "
+              "true ratio there carries pi(a|s) / beta(a|s)):", "", "| DROP penalty | MOPO penalty | true error |",
+              "|---|---|---|", f"| {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |"]
     (out / f"{stem}.md").write_text("\n".join(lines) + f"\n\n![scatter]({stem}.png)\n")
     print("\n".join(lines))
     return 0
