@@ -115,8 +115,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bench/results")
     p.add_argument("--stem", help="output file names, without suffix (default: penalty_vs_error_ENV)")
+    p.add_argument("--dice-steps", type=int, default=0,
+                   help="first train the run's ratio estimators this many more steps, the final policy fixed: does a "
+                        "longer-trained tau rank (s, a) otherwise? (reference implementations: about 100,000 steps)")
+    p.add_argument("--dice-batch", type=int, help="their batch for --dice-steps (default: the run's)")
     args = p.parse_args(argv)
     trainer, data = restore(args.dataset, args.run)
+    if args.dice_steps:
+        dice = trainer.cfg.dice.model_copy(update={"batch_size": args.dice_batch or trainer.cfg.dice.batch_size})
+        trainer.cfg = trainer.cfg.model_copy(update={"dice": dice})
+        trainer.train_dice(args.dice_steps)
     cfg = trainer.cfg
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -148,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     groups = {"offline": offline, "model rollout": rollout}
     both = {k: np.concatenate([offline[k], rollout[k]]) for k in rollout}
     result = {"env": cfg.env, "run": args.run, "dataset": args.dataset, "samples": args.samples,
+              "extra_dice_steps": args.dice_steps, "dice_batch": cfg.dice.batch_size,
               "dataset_attrs": {k: str(v) for k, v in data.attrs.items()},
               "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
                                "all": correlations(both)},
@@ -161,7 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     (out / f"{stem}.json").write_text(json.dumps(result, indent=2))
     scatter(groups, out / f"{stem}.png")
     name = f"{cfg.env}-{cfg.task}" if cfg.task else cfg.env
-    lines = [f"# Penalty vs true model error ({name}, {args.samples} offline + {args.samples} rollout samples)", "",
+    extra = f"; the ratio {args.dice_steps} steps more at batch {cfg.dice.batch_size}" if args.dice_steps else ""
+    lines = [f"# Penalty vs true model error ({name}, {args.samples} offline + {args.samples} rollout samples{extra})",
+             "",
              "| samples | penalty | Spearman | Pearson |", "|---|---|---|---|"]
     for group, corr in result["correlations"].items():
         for name in ("drop", "mopo"):
