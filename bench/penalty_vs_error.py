@@ -77,12 +77,10 @@ def correlations(rows: dict[str, np.ndarray]) -> dict:
     for name in ("drop", "mopo"):
         out[name] = {"spearman": float(stats.spearmanr(rows[name], rows["error"]).statistic),
                      "pearson": float(stats.pearsonr(rows[name], rows["error"]).statistic)}
-    if "distance" in rows:
-        out["vs_distance"] = {name: float(stats.spearmanr(rows[name], rows["distance"]).statistic)
-                              for name in ("drop", "mopo", "error")}
-    if "policy_logp" in rows:
-        out["vs_policy_logp"] = {name: float(stats.spearmanr(rows[name], rows["policy_logp"]).statistic)
-                                 for name in ("drop", "mopo", "error")}
+    for against in ("distance", "policy_logp"):
+        if against in rows:
+            out[f"vs_{against}"] = {name: float(stats.spearmanr(rows[name], rows[against]).statistic)
+                                    for name in ("drop", "mopo", "error")}
     return out
 
 

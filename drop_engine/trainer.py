@@ -452,8 +452,10 @@ class Trainer:
         return self._result("completed", policy)
 
     def dynamics(self) -> dict:
-        """The fitted ensemble's report and where it came from, as `Callback.on_dynamics` and `TrainResult` give it."""
-        return {**asdict(self.dynamics_report), **(self.dynamics_source or {})}
+        """The fitted ensemble's report and where it came from, as `Callback.on_dynamics` and `TrainResult` give it.
+        A run resumed from a checkpoint of format 1 (before the model cache) knows no source: its keys are None."""
+        return {"cache_key": None, "from_cache": None, "cache_path": None, **asdict(self.dynamics_report),
+                **(self.dynamics_source or {})}
 
     def _scores(self) -> list[tuple[int, float]]:
         return [(e["epoch"], e["normalized_score"]) for e in self.evaluations]

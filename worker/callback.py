@@ -93,8 +93,7 @@ class DbCallback(Callback):
     def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:
         """The job shows which ensemble it trains on; the cache's path on the server stays out of it. The flag apart
         is what /metrics counts cache hits and misses by."""
-        # A run resumed from a checkpoint of before the model cache knows no key: null, as the API documents.
-        shown = {"cache_key": None, "from_cache": None, **{k: v for k, v in dynamics.items() if k != "cache_path"}}
+        shown = {k: v for k, v in dynamics.items() if k != "cache_path"}
         with self.sessions.begin() as s:
             s.execute(update(Job).where(self._mine()).values(dynamics=shown, dynamics_from_cache=shown["from_cache"]))
 

@@ -75,7 +75,8 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
     values = {"finished_at": now, "heartbeat_at": now}
     if error:
         values.update(error_code=error[0], error_message=error[1])
-    for retry, delay in enumerate((*FINISH_RETRY_S, None)):
+    delays, retry = iter(FINISH_RETRY_S), False
+    while True:
         try:
             with sessions.begin() as s:
                 started_at = s.scalar(select(Job.started_at).where(Job.id == job_id))
@@ -84,17 +85,18 @@ def finish(sessions: sessionmaker[Session], job_id: str, attempt: int, status: J
                                   data={"error": {"code": error[0], "message": error[1]}} if error else None):
                     # A retry whose earlier commit went through, its answer lost, finds its own write (after the
                     # UPDATE, which waited for that commit if it was still in flight).
-                    return retry > 0 and _recorded(s, job_id, attempt, status, now)
+                    return retry and _recorded(s, job_id, attempt, status, now)
                 if trace:
                     s.add(JobEvent(job_id=job_id, type="traceback", message=trace[-20000:], data=None))
             return True
         except DBAPIError as exc:
+            delay = next(delays, None)
             if delay is None or not _connection_lost(exc):
                 raise
             log.warning("job %s: recording %s failed on the database connection; again in %s s", job_id, status.value,
                         delay, exc_info=True)
             time.sleep(delay)
-    return False  # not reached: the last try returns or raises
+            retry = True
 
 
 def _connection_lost(exc: BaseException) -> bool:

@@ -296,8 +296,12 @@ def test_a_checkpoint_of_format_1_still_resumes(tmp_path, hopper_dataset):
     state["format"] = 1
     del state["best"], state["dynamics_source"]
     torch.save(state, path)
-    result = Trainer(hopper_dataset, cfg, tmp_path).run()
+    recorder = Recorder()
+    result = Trainer(hopper_dataset, cfg, tmp_path, recorder).run()
     assert result.status == "completed" and len(result.evaluations) == 3
+    # Where its ensemble came from was not recorded then: None, with every key a caller reads present.
+    assert recorder.dynamics == [result.dynamics] and result.dynamics["epochs"] >= 1
+    assert (result.dynamics["cache_key"], result.dynamics["from_cache"], result.dynamics["cache_path"]) == (None,) * 3
     meta = json.loads((tmp_path / "policy" / "best" / "metadata.json").read_text())
     assert meta["epoch"] == result.best_epoch or "not kept" in meta["selected_by"]
 
