@@ -21,6 +21,7 @@ from scipy import stats
 from drop_engine.checkpoint import load_latest
 from drop_engine.config import TrainConfig
 from drop_engine.data import load_dataset
+from drop_engine.dice import GradientDice
 from drop_engine.penalties import ratio_penalty, uncertainty_penalty
 from drop_engine.replay_buffer import ReplayBuffer
 from drop_engine.rollout import model_rollout
@@ -57,9 +58,9 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
 
 
 @torch.no_grad()
-def distance_to_data(trainer: Trainer, obs, act, reference: np.ndarray, chunk: int = 256) -> np.ndarray:
+def nearest_data_row(trainer: Trainer, obs, act, reference: np.ndarray, chunk: int = 256):
     """Each (s, a)'s distance to the nearest of the `reference` data rows, in the dynamics model's standardised input
-    space: how far from the data it lies, what a density ratio ranks by."""
+    space (how far from the data it lies, what a density ratio ranks by), and that row's index in the data."""
     model = trainer.model
 
     def scale(o, a) -> torch.Tensor:
@@ -67,7 +68,19 @@ def distance_to_data(trainer: Trainer, obs, act, reference: np.ndarray, chunk: i
 
     ref = scale(trainer.data.observations[reference], trainer.data.actions[reference])
     x = scale(obs, act)
-    return torch.cat([torch.cdist(x[i:i + chunk], ref).min(1).values for i in range(0, len(x), chunk)]).numpy()
+    nearest = [torch.cdist(x[i:i + chunk], ref).min(1) for i in range(0, len(x), chunk)]
+    distance = torch.cat([n.values for n in nearest]).numpy()
+    return distance, reference[torch.cat([n.indices for n in nearest]).numpy()]
+
+
+def fresh_estimator(trainer: Trainer, hidden: tuple[int, ...], seed: int) -> GradientDice:
+    """An untrained ratio estimator of other widths, with the run's other DICE settings and observation scaling."""
+    cfg = trainer.cfg
+    torch.manual_seed(seed)
+    dice = GradientDice(cfg.dynamics.elites, trainer.data.obs_dim, trainer.data.act_dim,
+                        cfg.dice.model_copy(update={"hidden": hidden}), cfg.dice_discount)
+    dice.norm.load_state_dict(trainer.dice.norm.state_dict())
+    return dice
 
 
 def correlations(rows: dict[str, np.ndarray]) -> dict:
@@ -117,8 +130,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="first train the run's ratio estimators this many more steps, the final policy fixed: does a "
                         "longer-trained tau rank (s, a) otherwise? (reference implementations: about 100,000 steps)")
     p.add_argument("--dice-batch", type=int, help="their batch for --dice-steps (default: the run's)")
+    p.add_argument("--dice-hidden", type=lambda v: tuple(int(w) for w in v.split(",")),
+                   help="train a fresh estimator of these widths (e.g. 256,256) for --dice-steps instead of the run's: "
+                        "does a larger tau resolve the data's density where the model's error changes?")
     args = p.parse_args(argv)
+    if args.dice_hidden and not args.dice_steps:
+        p.error("--dice-hidden needs --dice-steps: a fresh estimator must be trained")
     trainer, data = restore(args.dataset, args.run)
+    if args.dice_hidden:
+        trainer.dice = fresh_estimator(trainer, args.dice_hidden, args.seed)
     if args.dice_steps:
         dice = trainer.cfg.dice.model_copy(update={"batch_size": args.dice_batch or trainer.cfg.dice.batch_size})
         trainer.cfg = trainer.cfg.model_copy(update={"dice": dice})
@@ -144,24 +164,31 @@ def main(argv: list[str] | None = None) -> int:
     reference = rng.permutation(np.setdiff1d(np.arange(len(data)), idx))[:100_000]
     if not len(reference):  # the sample is the whole file: each offline row is then its own nearest
         reference = np.arange(len(data))
-    offline["distance"] = distance_to_data(trainer, data.observations[idx], data.actions[idx], reference)
+    offline["distance"], _ = nearest_data_row(trainer, data.observations[idx], data.actions[idx], reference)
     # On data rows the true ratio carries pi(a|s)/beta(a|s): a ratio estimate that knows the policy rises with it.
     with torch.no_grad():
         offline["policy_logp"] = trainer.sac.actor.log_prob(torch.as_tensor(data.observations[idx]),
                                                             torch.as_tensor(data.actions[idx])).numpy()
-    rollout["distance"] = distance_to_data(trainer, obs.numpy(), act.numpy(), reference)
+    rollout["distance"], nearest = nearest_data_row(trainer, obs.numpy(), act.numpy(), reference)
+    # GradientDICE's objective reads tau only at data rows; a rollout's tau is the network's extrapolation. How much
+    # of it is the ratio already at the nearest data row?
+    at_nearest = penalties_and_error(trainer, data.observations[nearest], data.actions[nearest])
 
     groups = {"offline": offline, "model rollout": rollout}
     both = {k: np.concatenate([offline[k], rollout[k]]) for k in rollout}
     result = {"env": cfg.env, "run": args.run, "dataset": args.dataset, "samples": args.samples,
               "extra_dice_steps": args.dice_steps, "dice_batch": cfg.dice.batch_size,
+              "dice_hidden": list(args.dice_hidden or cfg.dice.hidden), "fresh_dice": bool(args.dice_hidden),
               "dataset_attrs": {k: str(v) for k, v in data.attrs.items()},
               "correlations": {"offline": correlations(offline), "model_rollout": correlations(rollout),
                                "all": correlations(both)},
               "mean_error": {"offline": float(offline["error"].mean()),
                              "model_rollout": float(rollout["error"].mean())},
               "mean_distance": {"offline": float(offline["distance"].mean()),
-                                "model_rollout": float(rollout["distance"].mean())}}
+                                "model_rollout": float(rollout["distance"].mean())},
+              "rollout_vs_nearest_data_row": {
+                  name: float(stats.spearmanr(rollout[name], at_nearest[name]).statistic)
+                  for name in ("drop", "mopo", "error")}}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"penalty_vs_error_{cfg.env}"
@@ -169,6 +196,9 @@ def main(argv: list[str] | None = None) -> int:
     scatter(groups, out / f"{stem}.png")
     name = f"{cfg.env}-{cfg.task}" if cfg.task else cfg.env
     extra = f"; the ratio {args.dice_steps} steps more at batch {cfg.dice.batch_size}" if args.dice_steps else ""
+    if args.dice_hidden:
+        extra = (f"; a fresh {'-'.join(map(str, args.dice_hidden))} ratio trained {args.dice_steps} steps at batch "
+                 f"{cfg.dice.batch_size} on the final policy")
     lines = [f"# Penalty vs true model error ({name}, {args.samples} offline + {args.samples} rollout samples{extra})",
              "",
              "| samples | penalty | Spearman | Pearson |", "|---|---|---|---|"]
@@ -185,6 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "Spearman with the policy's log-likelihood of the data action, log pi(a|s), on the offline rows (the "
               "true ratio there carries pi(a|s) / beta(a|s)):", "", "| DROP penalty | MOPO penalty | true error |",
               "|---|---|---|", f"| {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |"]
+    d = result["rollout_vs_nearest_data_row"]
+    lines += ["", "Spearman of each at a rollout's (s, a) with the same at its nearest data row (DICE's objective "
+              "reads tau only at data rows; a rollout's is extrapolated):", "",
+              "| DROP penalty | MOPO penalty | true error |", "|---|---|---|",
+              f"| {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |"]
     (out / f"{stem}.md").write_text("\n".join(lines) + f"\n\n![scatter]({stem}.png)\n")
     print("\n".join(lines))
     return 0

@@ -6,10 +6,13 @@ from pathlib import Path
 from typing import Iterator
 
 from sqlalchemy import create_engine, event
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+# libpq waits for ever on a server that takes the TCP connection and never answers (a stuck server, a half-open path),
+# and so would the request or worker that asked. A URL that names connect_timeout keeps its own (0: no limit).
+CONNECT_TIMEOUT_S = 10
 
 
 def make_engine(url: str) -> Engine:
@@ -25,7 +28,9 @@ def make_engine(url: str) -> Engine:
             cur.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10)
+    own = "connect_timeout" in make_url(url).query
+    return create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10,
+                         connect_args={} if own else {"connect_timeout": CONNECT_TIMEOUT_S})
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
