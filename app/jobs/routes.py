@@ -42,12 +42,13 @@ async def jobs_get(job_id: str, request: Request, owner: OwnerId) -> FastJSONRes
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
              summary="Cancel: a queued job at once, a running one at its next step",
-             responses={200: {"description": "Already cancelled: nothing changed", "model": JobOut}})
+             responses={200: {"description": "Cancelled: a queued job by this request, or any job before it",
+                              "model": JobOut}})
 def jobs_cancel(job_id: str, response: Response, owner: OwnerId, s: DbSession) -> dict:
-    """Safe to repeat: asking again while it stops answers 202 again, and once it is cancelled 200; nothing changes.
-    A job that succeeded or failed cannot be cancelled: 409."""
-    row, already = service.cancel(s, owner, job_id)
-    if already:
+    """The code follows the job's status: 202 while it stops (cancelling), 200 once it is cancelled, so a client
+    polls only after a 202. Safe to repeat: asking again changes nothing. A job that succeeded or failed: 409."""
+    row = service.cancel(s, owner, job_id)
+    if row.status == JobStatus.CANCELLED:
         response.status_code = 200
     return job(row)
 

@@ -76,10 +76,9 @@ def create(s: Session, owner: str, req: JobRequest, idempotency_key: str | None,
     return job, True
 
 
-def cancel(s: Session, owner: str, job_id: str) -> tuple[Job, bool]:
-    """(the job, whether it was already cancelled): a queued job is cancelled at once, a running one becomes
-    cancelling until its worker stops it at the next step; asking again changes nothing. 409 once it succeeded or
-    failed."""
+def cancel(s: Session, owner: str, job_id: str) -> Job:
+    """A queued job is cancelled at once, a running one becomes cancelling until its worker stops it at the next
+    step; asking again changes nothing. 409 once it succeeded or failed."""
     owned_job(s, owner, job_id)
     done = transition(s, job_id, JobStatus.CANCELLED, source=JobStatus.QUEUED, values={"finished_at": utcnow()},
                       message="cancelled before it started")
@@ -90,7 +89,7 @@ def cancel(s: Session, owner: str, job_id: str) -> tuple[Job, bool]:
     job = owned_job(s, owner, job_id)
     if job.status in (JobStatus.SUCCEEDED, JobStatus.FAILED):
         raise Problem(409, "job_finished", f"job {job_id} has already finished ({job.status}); it cannot be cancelled")
-    return job, job.status == JobStatus.CANCELLED and not done
+    return job
 
 
 def delete(s: Session, owner: str, job_id: str, settings: Settings) -> None:
