@@ -109,6 +109,20 @@ def _field_errors(exc: RequestValidationError) -> list[dict]:
     return out
 
 
+def _unreadable_body(exc: RequestValidationError) -> Problem | None:
+    """A body that is not JSON at all, which pydantic reports as a field named by a character offset (invalid JSON) or
+    as the whole body being no object (JSON sent without its Content-Type, curl -d's default): said as what it is."""
+    for err in exc.errors():
+        loc = tuple(err.get("loc", ()))
+        if err.get("type") == "json_invalid":
+            reason = (err.get("ctx") or {}).get("error", "malformed")
+            return Problem(400, "invalid_json", f"the request body is not valid JSON: {reason} (at character {loc[-1]})")
+        if loc == ("body",) and isinstance(err.get("input"), bytes):
+            return Problem(415, "unsupported_media_type",
+                           "the request body must be JSON sent with the header Content-Type: application/json")
+    return None
+
+
 def install(app: FastAPI) -> None:
     generate = app.openapi
 
@@ -133,6 +147,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):
+        if unreadable := _unreadable_body(exc):
+            return await _problem(_, unreadable)
         errors = _field_errors(exc)
         detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
         return problem_response(422, _code(exc), detail, errors=errors)

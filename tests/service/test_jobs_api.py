@@ -38,6 +38,21 @@ def test_bad_job_fields_are_422(alice, dataset, body, field, code):
     assert problem["code"] == code and field in {e["field"] for e in problem["errors"]}, problem
 
 
+def test_a_body_that_is_not_json_says_so(alice, dataset):
+    """Malformed JSON is a 400 that says where it broke, and JSON sent without its Content-Type (curl -d's default) a
+    415 naming the header: neither is a 422 about a field named by a character offset."""
+    body = '{"dataset_id": "%s", "preset": "smoke",}' % dataset["id"]
+    r = alice.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 400 and r.headers["content-type"] == PROBLEM, r.text
+    assert r.json()["code"] == "invalid_json" and f"at character {len(body) - 1}" in r.json()["detail"], r.json()
+    form = {"Content-Type": "application/x-www-form-urlencoded"}
+    r = alice.post("/v1/jobs", content=body.replace(",}", "}"), headers=form)
+    assert r.status_code == 415 and r.headers["content-type"] == PROBLEM, r.text
+    assert "Content-Type: application/json" in r.json()["detail"]
+    r = alice.post("/v1/jobs", json=["not", "an", "object"])  # JSON, of the wrong shape: still a field error
+    assert r.status_code == 422 and r.json()["code"] == "validation_error", r.text
+
+
 def test_a_gymnasium_id_names_its_env(alice, dataset):
     r = alice.post("/v1/jobs", json={"dataset_id": dataset["id"], "preset": "smoke", "env": "Hopper-v4"})
     assert r.status_code == 201 and r.json()["env"] == "hopper", r.text
