@@ -281,16 +281,30 @@ def _merge(base: dict, extra: Mapping) -> dict:
 
 
 def _nest(overrides: Mapping[str, Any]) -> dict:
-    """Turn {"dice.lr": 1e-3} into {"dice": {"lr": 1e-3}}; nested dicts pass through."""
+    """Turn {"dice.lr": 1e-3} into {"dice": {"lr": 1e-3}}; nested dicts merge in. A field given twice (`dice.lr` and
+    `dice: {lr}`) is refused by name rather than one of them silently winning."""
     nested: dict = {}
-    for key, value in overrides.items():
-        parts = str(key).split(".")
+
+    def put(path: tuple[str, ...], value: Any) -> None:
         node = nested
-        for part in parts[:-1]:
+        for depth, part in enumerate(path[:-1], 1):
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
-                raise ConfigError(f"override {key!r} conflicts with another override")
-        node[parts[-1]] = value
+                raise ConfigError(f"{'.'.join(path[:depth])}: set as a value and as a group of fields in overrides")
+        last = path[-1]
+        if isinstance(value, Mapping):
+            if not isinstance(node.setdefault(last, {}), dict):
+                raise ConfigError(f"{'.'.join(path)}: set as a value and as a group of fields in overrides")
+            for key, inner in value.items():
+                put((*path, str(key)), inner)
+        elif last in node:
+            twice = "set as a value and as a group of fields" if isinstance(node[last], dict) else "given twice"
+            raise ConfigError(f"{'.'.join(path)}: {twice} in overrides")
+        else:
+            node[last] = value
+
+    for key, value in overrides.items():
+        put(tuple(str(key).split(".")), value)
     return nested
 
 

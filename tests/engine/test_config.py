@@ -20,6 +20,23 @@ def test_overrides_apply_last_and_nest():
     assert cfg.dice.lr == 1e-3 and cfg.epochs == 7 and cfg.penalty.g == "tanh" and cfg.penalty.eta == 5.0
 
 
+@pytest.mark.parametrize("overrides, field", [
+    ({"dice.lr": 1e-3, "dice": {"lr": 2e-3}}, "dice.lr: given twice"),
+    ({"dice": {"lr": 2e-3}, "dice.lr": 1e-3}, "dice.lr: given twice"),
+    ({"dice": 1, "dice.lr": 1e-3}, "dice: set as a value and as a group"),
+    ({"dice.lr": 1e-3, "dice": 1}, "dice: set as a value and as a group"),
+    ({"sac.hidden": [64, 64], "sac": {"hidden": [32]}}, "sac.hidden: given twice"),
+])
+def test_a_field_given_twice_is_refused_by_name(overrides, field):
+    """Neither spelling silently wins; the caller's own dicts are not changed either."""
+    before = repr(overrides)
+    with pytest.raises(ConfigError, match=field):
+        build_config("drop", env="hopper", preset="cpu", overrides=overrides)
+    assert repr(overrides) == before
+    merged = build_config("drop", env="hopper", preset="cpu", overrides={"dice.lr": 1e-3, "dice": {"lam": 0.5}})
+    assert (merged.dice.lr, merged.dice.lam) == (1e-3, 0.5)
+
+
 @pytest.mark.parametrize("overrides, message", [
     ({"dice.learning_rate": 1}, "dice.learning_rate: Extra inputs are not permitted"),
     ({"epochs": 0}, "epochs: Input should be greater than or equal to 1"),

@@ -24,6 +24,7 @@ def dataset(client, tokens, hopper_file):
     ({"overrides": {"epochs": 0}}, "epochs", "invalid_config"),
     ({"overrides": {"sac.gamma": "high"}}, "sac.gamma", "invalid_config"),
     ({"overrides": {"device": "cuda"}}, "overrides", "invalid_override"),
+    ({"overrides": {"dice.lr": 1e-3, "dice": {"lr": 2e-3}}}, "dice.lr", "invalid_config"),  # neither silently wins
     ({"seed": -1}, "seed", "validation_error"),
     ({"colour": "red"}, "colour", "validation_error"),
     ({"algorithm": 5}, "algorithm", "validation_error"),  # not a string at all: a type error, not an unknown name
