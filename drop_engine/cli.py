@@ -11,7 +11,7 @@ import click
 
 from .atomic import write_text
 from .collect_config import KINDS, CollectConfig, OnlineConfig
-from .config import PRESETS, Algorithm, build_config, parse_override
+from .config import PRESETS, TASKS, Algorithm, build_config, parse_override
 from .envs import DEFAULT_VERSION, VERSIONS
 from .errors import ConfigError
 from .policy_files import FILE_NAMES
@@ -89,7 +89,8 @@ def engine() -> None:
 @click.option("--env", default="hopper", show_default=True, help="hopper | walker2d | halfcheetah")
 @click.option("--algorithm", default="drop", show_default=True, type=click.Choice(get_args(Algorithm)))
 @click.option("--preset", default="cpu", show_default=True, type=click.Choice(PRESETS))
-@click.option("--task", default=None, help="dataset kind (random, medium, ...) selecting the paper's settings")
+@click.option("--task", default=None, type=click.Choice(TASKS),
+              help="dataset kind selecting the paper's settings (default: medium's)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda")
 @click.option("--threads", type=int, default=None, help="torch intra-op threads")

@@ -19,6 +19,9 @@ Algorithm = Literal["drop", "mopo", "mbpo"]
 PenaltyFn = Literal["log", "tanh", "tanh_shift"]
 Preset = Literal["paper", "cpu", "smoke"]
 PRESETS: tuple[Preset, ...] = get_args(Preset)
+# The dataset kinds with settings of their own (the official table's rows); a run without one takes medium's.
+Task = Literal["random", "medium", "medium-replay", "medium-expert"]
+TASKS: tuple[Task, ...] = get_args(Task)
 
 
 class _Strict(BaseModel):
@@ -165,7 +168,8 @@ class TrainConfig(_Strict):
     env_version: EnvVersion | None = Field(None, description="the gymnasium env version evaluations run in; default: "
                                            "the version of the env id the dataset records (Minari's MuJoCo datasets "
                                            "record v5), else v4")
-    task: str | None = Field(None, description="dataset kind, e.g. 'medium', selects the per-dataset settings")
+    task: str | None = Field(None, description="dataset kind, e.g. 'medium', selects the per-dataset settings "
+                             "(build_config admits only TASKS; a stored config keeps what it was built with)")
     preset: Preset = "cpu"
     seed: int = Field(0, ge=0, lt=2**32)
     device: str = "cpu"
@@ -217,7 +221,7 @@ PAPER_EPOCHS = {"hopper": 1500, "halfcheetah": 500, "walker2d": 3000}
 
 
 def dataset_settings(env: str, task: str | None) -> dict[str, Any]:
-    """The official per-dataset settings as nested overrides; `medium` stands in for an unknown task."""
+    """The official per-dataset settings as nested overrides; `medium` stands in for no task."""
     key = f"{env}-{task}" if f"{env}-{task}" in _TABLE else f"{env}-medium"
     if key not in _TABLE:
         return {}
@@ -331,6 +335,8 @@ def build_config(
     device: str = "cpu",
 ) -> TrainConfig:
     """Compose dataset settings, preset and overrides into one validated config."""
+    if task is not None and task not in TASKS:  # a typo (medium_replay) would silently take medium's settings
+        raise ConfigError(f"task: {task!r} is not one of {', '.join(TASKS)}; leave it out for medium's settings")
     base = {"algorithm": algorithm, "env": env, "preset": preset, "task": task, "seed": seed, "device": device}
     layers = [dataset_settings(env, task), preset_settings(preset, env, task), _nest(overrides or {})]
     merged: dict = base

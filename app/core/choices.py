@@ -9,5 +9,6 @@ from drop_engine import config, envs, formats
 
 Algorithm = TypeAliasType("Algorithm", config.Algorithm)
 Preset = TypeAliasType("Preset", config.Preset)
+Task = TypeAliasType("Task", config.Task)
 EnvName = TypeAliasType("EnvName", envs.EnvName)
 DatasetFormat = TypeAliasType("DatasetFormat", formats.Format)

@@ -116,7 +116,8 @@ def _unreadable_body(exc: RequestValidationError) -> Problem | None:
         loc = tuple(err.get("loc", ()))
         if err.get("type") == "json_invalid":
             reason = (err.get("ctx") or {}).get("error", "malformed")
-            return Problem(400, "invalid_json", f"the request body is not valid JSON: {reason} (at character {loc[-1]})")
+            return Problem(400, "invalid_json",
+                           f"the request body is not valid JSON: {reason} (at character {loc[-1]})")
         if loc == ("body",) and isinstance(err.get("input"), bytes):
             return Problem(415, "unsupported_media_type",
                            "the request body must be JSON sent with the header Content-Type: application/json")

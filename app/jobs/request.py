@@ -9,7 +9,7 @@ from drop_engine.envs import get_env
 from kernel.models import Dataset
 from kernel.settings import Settings
 
-from ..core.choices import Algorithm, EnvName, Preset
+from ..core.choices import Algorithm, EnvName, Preset, Task
 from ..core.problems import Problem, one_of
 from . import limits
 
@@ -21,6 +21,7 @@ MAX_OVERRIDE_DEPTH = 8
 AlgorithmChoice = one_of(Algorithm, "unknown_algorithm")
 EnvChoice = one_of(EnvName, "unknown_env")
 PresetChoice = one_of(Preset, "unknown_preset")
+TaskChoice = one_of(Task, "unknown_task")
 
 
 def _depth(value: Any) -> int:
@@ -44,8 +45,8 @@ class JobRequest(BaseModel):
     env: EnvChoice | None = Field(None, description="default: the env the dataset matches; a gymnasium id "
                                                     "(Hopper-v4) names its env too")
     preset: PresetChoice = "cpu"
-    task: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$",
-                             description="dataset kind (random, medium, ...) selecting the paper's settings")
+    task: TaskChoice | None = Field(None, description="dataset kind selecting the paper's settings (default: "
+                                                      "medium's)")
     overrides: dict[str, Any] = Field(default_factory=dict, description='dotted keys, e.g. {"epochs": 50}')
     seed: int = Field(0, ge=0, le=2**31 - 1)
     max_runtime_s: int | None = Field(None, ge=5, le=30 * 24 * 3600, description="time limit of one attempt")

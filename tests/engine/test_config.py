@@ -50,11 +50,15 @@ def test_bad_overrides_name_the_field(overrides, message):
     assert message in str(info.value)
 
 
-def test_unknown_algorithm_and_preset():
+def test_unknown_algorithm_preset_and_task():
     with pytest.raises(ConfigError, match="algorithm"):
         build_config("cql", env="hopper", preset="cpu")
     with pytest.raises(ConfigError, match="unknown preset 'huge'"):
         build_config("drop", env="hopper", preset="huge")
+    with pytest.raises(ConfigError, match="task: 'medium_replay' is not one of random, medium, medium-replay"):
+        build_config("drop", env="walker2d", preset="cpu", task="medium_replay")
+    no_task = build_config("drop", env="walker2d", preset="cpu")
+    assert no_task.rollout.horizon == build_config("drop", env="walker2d", preset="cpu", task="medium").rollout.horizon
 
 
 def test_paper_preset_stays_faithful_and_cpu_adds_the_stabilisers():

@@ -20,6 +20,7 @@ def dataset(client, tokens, hopper_file):
     ({"env": "walker2d"}, "env", "env_mismatch"),
     ({"env": "ant"}, "env", "unknown_env"),
     ({"preset": "huge"}, "preset", "unknown_preset"),
+    ({"task": "medium_replay"}, "task", "unknown_task"),  # a typo would otherwise take medium's settings
     ({"overrides": {"dice.nope": 1}}, "dice.nope", "invalid_config"),
     ({"overrides": {"epochs": 0}}, "epochs", "invalid_config"),
     ({"overrides": {"sac.gamma": "high"}}, "sac.gamma", "invalid_config"),
@@ -42,7 +43,7 @@ def test_bad_job_fields_are_422(alice, dataset, body, field, code):
 def test_a_body_that_is_not_json_says_so(alice, dataset):
     """Malformed JSON is a 400 that says where it broke, and JSON sent without its Content-Type (curl -d's default) a
     415 naming the header: neither is a 422 about a field named by a character offset."""
-    body = '{"dataset_id": "%s", "preset": "smoke",}' % dataset["id"]
+    body = f'{{"dataset_id": "{dataset["id"]}", "preset": "smoke",}}'
     r = alice.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.headers["content-type"] == PROBLEM, r.text
     assert r.json()["code"] == "invalid_json" and f"at character {len(body) - 1}" in r.json()["detail"], r.json()
