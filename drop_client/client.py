@@ -181,7 +181,7 @@ def print_progress(job: dict, file: TextIO | None = None) -> None:
     parts = [f"{job['id']}: {job['status']}"]
     if job["status"] == "running" and (p := job["progress"]):
         parts.append(f"train epoch {p['epoch']} ({p['fraction']:.0%})" if p["phase"] == "train"
-                     else f"{p['phase']} {p['step']}/{p['total']}")
+                     else f"{p['phase']} {p['step']}" + (f"/{p['total']}" if p["total"] else ""))
     if job["last_score"] is not None and job["best_score"] is not None:
         parts.append(f"last score {job['last_score']:.1f}, best {job['best_score']:.1f}")
     if job["error"]:

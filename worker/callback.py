@@ -21,6 +21,17 @@ from kernel.storage import from_stored, to_stored
 PROGRESS_EVERY_S = 1.0
 
 
+def describe_progress(phase: str, epoch: int, step: int, total: int) -> tuple[dict[str, Any], str]:
+    """The job's `progress` and its event's message. `fraction` is of the phase's budget: a dynamics fit's epochs
+    against its cap (it may stop earlier, by patience), SAC's updates against the run's. A fit without an epoch cap
+    (the paper preset) has no budget: null, and no "/0" in the message."""
+    fraction = round(min(step / total, 1.0), 4) if total else None
+    progress = {"phase": phase, "epoch": epoch, "step": step, "total": total, "fraction": fraction}
+    if phase == "train":
+        return progress, f"train: epoch {epoch}"
+    return progress, f"{phase}: step {step}/{total}" if total else f"{phase}: step {step}"
+
+
 class DbCallback(Callback):
     def __init__(self, sessions: sessionmaker[Session], job_id: str, attempt: int, settings: Settings,
                  shutting_down: Callable[[], bool] = lambda: False):
@@ -68,14 +79,9 @@ class DbCallback(Callback):
         if not changed and now - self._last_progress < PROGRESS_EVERY_S and step != total:
             return
         self._last_progress = now
-        if phase == "train" and total:
-            fraction = round(step / total, 4)
-        else:
-            fraction = 1.0 if phase == "export" and step else 0.0
-        progress = {"phase": phase, "epoch": epoch, "step": step, "total": total, "fraction": fraction}
+        progress, message = describe_progress(phase, epoch, step, total)
         with self.sessions.begin() as s:
             if s.execute(update(Job).where(self._mine()).values(progress=progress)).rowcount and changed:
-                message = f"{phase}: epoch {epoch}" if phase == "train" else f"{phase}: step {step}/{total}"
                 s.add(JobEvent(job_id=self.job_id, type="progress", message=message, data=progress))
         self._phase_epoch = key
 

@@ -42,6 +42,9 @@ def test_upload_train_download(alice, worker, hopper_file, settings):
     statuses = [e["data"]["status"] for e in events if e["type"] == "status"]
     assert statuses == ["queued", "running", "succeeded"]
     assert {"progress", "evaluation", "checkpoint"} <= {e["type"] for e in events}
+    # The dynamics fit shows how far through its epoch cap it is, not 0 % until SAC starts.
+    fit = [e["data"] for e in events if e["type"] == "progress" and e["data"]["phase"] == "dynamics"]
+    assert fit and all(d["fraction"] == round(d["step"] / d["total"], 4) > 0 for d in fit), fit
     page = alice.get(f"/v1/jobs/{job['id']}/events", params={"after": events[0]["id"], "limit": 2}).json()
     assert [e["id"] for e in page["data"]] == [e["id"] for e in events[1:3]] and page["has_more"]
 
