@@ -11,6 +11,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from drop_engine.data_rows import DataShape
+from drop_engine.envs import ENVS
 from kernel.fast_reads import FastReads
 from kernel.ids import is_id, new_id
 from kernel.job_state import ACTIVE, status_in
@@ -84,8 +85,12 @@ async def _validate(request: Request, upload: Upload, dataset_id: str, owner: st
         result = await request.app.state.validator.validate(upload.path, staging, VALIDATION_SECONDS.time())
     except Invalid as exc:
         raise Problem(422, "invalid_dataset", str(exc)) from None
-    staging.rename(target)
     report = result["report"]
+    if not report["env_candidates"]:  # no job could ever run on it: every job trains and evaluates in one of these
+        known = ", ".join(f"{spec.name} ({spec.obs_dim}, {spec.act_dim})" for spec in ENVS.values())
+        raise Problem(422, "invalid_dataset", f"observations, actions: dims ({report['obs_dim']}, {report['act_dim']}) "
+                                              f"match no supported env; (obs, act) dims of each: {known}")
+    staging.rename(target)
     return Dataset(id=dataset_id, owner_id=owner, name=upload.filename[:300], format=result["format"],
                    sha256=upload.sha256, size_bytes=upload.size,
                    decoded_bytes=DataShape(report["transitions"], report["obs_dim"], report["act_dim"]).decoded_bytes,

@@ -39,6 +39,13 @@ def test_nans(alice, clean, tmp_path):
     assert_problem(upload_refused(alice.api, _write(tmp_path / "nan.hdf5", arrays)), 422, "rewards", "NaN")
 
 
+def test_dims_of_no_supported_env(alice, clean, tmp_path):
+    """A well-formed file no job could train on (no env has its dims) is refused at upload, naming the envs' dims,
+    rather than stored against the owner's quota to fail every job later."""
+    path = _write(tmp_path / "odd.hdf5", d4rl_arrays(obs=5, act=3))
+    assert_problem(upload_refused(alice.api, path), 422, "(5, 3) match no supported env", "hopper (11, 3)")
+
+
 def test_not_a_dataset(alice, clean):
     r = alice.post("/v1/datasets", content=b"hello, world" * 10, headers={"Content-Type": "application/octet-stream"})
     assert_problem(r, 422, "not an HDF5")
