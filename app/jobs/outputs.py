@@ -3,6 +3,7 @@ learning curve and the trained policy."""
 from __future__ import annotations
 
 import json
+import os
 import time
 from functools import partial
 from typing import Annotated, Callable
@@ -136,11 +137,22 @@ def jobs_get_curve(job_id: str, owner: OwnerId, s: DbSession) -> Response:
                                "state_dict, or metadata", response_class=FileResponse,
             responses={200: {"description": "The file: binary, or JSON for `format=metadata`", "model": PolicyMetadata,
                              "content": {"application/octet-stream": {"schema": BINARY}}}})
-def jobs_get_policy(job_id: str, owner: OwnerId, s: DbSession, settings: AppSettings,
+def jobs_get_policy(job_id: str, request: Request, owner: OwnerId, s: DbSession, settings: AppSettings,
                     which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one "
                                                               "of the evaluation with the highest normalised score "
                                                               "(the earlier of ties), chosen by evaluations in the "
                                                               "real env")] = "last",
                     format: PolicyFormat = "torchscript"):
+    """Conditional: a client that sends the ETag it has (If-None-Match) gets 304 and no body; HEAD gets the headers
+    (size, ETag) alone; Range requests get the part asked for."""
     path, media = reads.policy_file(s, owner, job_id, which, format, settings)
-    return FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}")
+    response = FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}",
+                            stat_result=os.stat(path))  # sets the ETag now, so it can be compared
+    etag = response.headers["etag"]
+    held = {tag.strip().removeprefix("W/") for tag in request.headers.get("if-none-match", "").split(",")}
+    if etag in held or "*" in held:
+        return Response(status_code=304, headers={"etag": etag})
+    return response
+
+
+router.add_api_route("/policy", jobs_get_policy, methods=["HEAD"], include_in_schema=False)

@@ -18,6 +18,9 @@ class Authed:
     def get(self, url, **kw):
         return self.request("GET", url, **kw)
 
+    def head(self, url, **kw):
+        return self.request("HEAD", url, **kw)
+
     def post(self, url, **kw):
         return self.request("POST", url, **kw)
 

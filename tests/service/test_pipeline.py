@@ -71,6 +71,14 @@ def test_upload_train_download(alice, worker, hopper_file, settings):
 
     r = alice.get(f"/v1/jobs/{job['id']}/policy")
     assert r.status_code == 200
+    # curl -I shows the size and ETag without the body; a client holding that ETag gets 304 and no body again.
+    head = alice.head(f"/v1/jobs/{job['id']}/policy")
+    assert head.status_code == 200 and not head.content
+    assert int(head.headers["content-length"]) == len(r.content) and head.headers["etag"] == r.headers["etag"]
+    same = alice.get(f"/v1/jobs/{job['id']}/policy", headers={"If-None-Match": f'"other", {r.headers["etag"]}'})
+    assert same.status_code == 304 and not same.content and same.headers["etag"] == r.headers["etag"]
+    other = alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best"}, headers={"If-None-Match": '"x"'})
+    assert other.status_code == 200 and other.content
     policy = torch.jit.load(io.BytesIO(r.content))
     actions = policy(torch.randn(5, 11))
     assert actions.shape == (5, 3) and bool((actions.abs() <= 1).all())
