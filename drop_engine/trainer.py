@@ -485,6 +485,8 @@ class Trainer:
             "which": which, "epoch": epoch, "normalized_score": score, **extra,
             "env": self.cfg.env, "gym_id": self.spec.gym_id(self.env_version),
             "obs_dim": self.data.obs_dim, "act_dim": self.data.act_dim, "algorithm": self.cfg.algorithm,
+            # What it was trained on, which outlives the dataset (a deleted upload, a file remade elsewhere).
+            "dataset": {"content_hash": self.data.content_hash, "transitions": len(self.data)},
             "config": self.cfg.model_dump(mode="json"), "epochs": self.epoch, **asdict(summarize(self._scores())),
         }
         return {k: str(v) for k, v in export_policy(actor, self.out / "policy" / which, metadata).items()}

@@ -108,6 +108,8 @@ class PolicyMetadata(BaseModel):
     obs_dim: int
     act_dim: int
     algorithm: Algorithm
+    dataset: dict[str, Any] | None = Field(None, description="what it was trained on, kept after the dataset is "
+                                           "deleted: `content_hash` (sha256 of its arrays) and `transitions`")
     config: dict[str, Any] = Field(description="the whole training config")
     epochs: int = Field(description="epochs the run trained")
     which: Which | None = None

@@ -105,6 +105,8 @@ def test_best_policy_is_the_actor_of_the_best_evaluation(tmp_path, hopper_datase
     selected_by = meta["best"]["selected_by"]
     assert "2 deterministic episodes" in selected_by and "an online choice" in selected_by
     assert (meta["last"]["which"], meta["last"]["epoch"], meta["last"]["normalized_score"]) == ("last", 4, 1.0)
+    assert meta["best"]["dataset"] == meta["last"]["dataset"] == {"content_hash": hopper_dataset.content_hash,
+                                                                  "transitions": len(hopper_dataset)}
 
     # Each exported policy acts as the actor did at its epoch, as that epoch's checkpoint recorded it.
     probe = Trainer(hopper_dataset, cfg, tmp_path / "probe")
