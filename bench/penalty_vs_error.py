@@ -125,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=10_000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bench/results")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (two probes side by side: 1 each)")
     p.add_argument("--stem", help="output file names, without suffix (default: penalty_vs_error_ENV)")
     p.add_argument("--dice-steps", type=int, default=0,
                    help="first train the run's ratio estimators this many more steps, the final policy fixed: does a "
@@ -136,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.dice_hidden and not args.dice_steps:
         p.error("--dice-hidden needs --dice-steps: a fresh estimator must be trained")
+    torch.set_num_threads(args.threads)
     trainer, data = restore(args.dataset, args.run)
     if args.dice_hidden:
         trainer.dice = fresh_estimator(trainer, args.dice_hidden, args.seed)
