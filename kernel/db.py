@@ -1,17 +1,19 @@
 """Engine and session factory, with SQLite tuned for one API plus worker processes sharing the file."""
 from __future__ import annotations
 
+import os
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
 from sqlalchemy import create_engine, event
-from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.engine import URL, Engine, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
-# libpq waits for ever on a server that takes the TCP connection and never answers (a stuck server, a half-open path),
-# and so would the request or worker that asked. A URL that names connect_timeout keeps its own (0: no limit).
+# How long a connect may wait for a server that takes the TCP connection and never answers (a stuck server, a
+# half-open path): the drivers' own defaults hold the request or worker that asked for 130 s (psycopg) or 60 s
+# (asyncpg). A URL's own connect_timeout, or else PGCONNECT_TIMEOUT, is kept.
 CONNECT_TIMEOUT_S = 10
 
 
@@ -28,9 +30,15 @@ def make_engine(url: str) -> Engine:
             cur.close()
 
         return engine
-    own = "connect_timeout" in make_url(url).query
-    return create_engine(url, pool_pre_ping=True, pool_size=5, max_overflow=10,
-                         connect_args={} if own else {"connect_timeout": CONNECT_TIMEOUT_S})
+    return create_engine(with_connect_timeout(make_url(url)), pool_pre_ping=True, pool_size=5, max_overflow=10)
+
+
+def with_connect_timeout(url: URL) -> URL:
+    """`url` naming its connect timeout, so every connection made from it (the ORM's, the hot reads' asyncpg pool,
+    the event listener) gives up alike."""
+    if "connect_timeout" in url.query:
+        return url
+    return url.update_query_dict({"connect_timeout": os.environ.get("PGCONNECT_TIMEOUT") or str(CONNECT_TIMEOUT_S)})
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:

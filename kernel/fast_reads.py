@@ -26,8 +26,6 @@ import orjson
 from sqlalchemy.engine import URL, Engine
 from sqlalchemy.sql import Executable
 
-from .db import CONNECT_TIMEOUT_S
-
 log = logging.getLogger("drop.api")
 POOL_WAIT_S = 10.0  # a read that waits this long for a connection fails (TimeoutError, a 500), not queueing on
 BATCH_MAX = 100  # keys in one batched read
@@ -47,11 +45,11 @@ def asyncpg_connect_args(url: URL) -> tuple[str, dict[str, Any]]:
     """The DSN and keyword arguments of `asyncpg.connect` for the database at SQLAlchemy `url`."""
     query = dict(url.query)
     dsn = url.set(drivername="postgresql", query={k: v for k, v in query.items() if k not in LIBPQ_ONLY})
-    given = query.get("connect_timeout", CONNECT_TIMEOUT_S)
+    given = query.get("connect_timeout") or 0  # make_engine's URL always names one (kernel.db.with_connect_timeout)
     if isinstance(given, tuple):  # named twice: libpq takes the last
         given = given[-1]
     try:
-        timeout = float(given)  # libpq: 0 waits for ever; asyncpg then keeps its default, 60 s
+        timeout = float(given)  # 0: asyncpg keeps its default, 60 s
     except ValueError:
         raise ValueError(f"connect_timeout in the database URL must be seconds, not {given!r}") from None
     return dsn.render_as_string(hide_password=False), ({"timeout": timeout} if timeout > 0 else {})
