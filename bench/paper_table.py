@@ -37,7 +37,7 @@ from scipy import stats
 
 from drop_engine.atomic import write_text
 from drop_engine.bc import evaluate_actor, train_bc
-from drop_engine.config import TrainConfig, build_config, parse_override
+from drop_engine.config import TASKS, TrainConfig, build_config, override_dict, parse_override
 from drop_engine.data import load_dataset
 from drop_engine.envs import get_env
 from drop_engine.file_lock import Busy, exclusive
@@ -90,7 +90,7 @@ def same_config(stored: dict | None, wanted: dict) -> bool:
 def setting_config(setting: dict, device: str = "cpu"):
     """The config each (env, kind, algorithm) resolves to under a setting, with this checkout's presets."""
     def wanted(env: str, kind: str, algorithm: str) -> dict:
-        overrides = dict(parse_override(kv) for kv in setting["set"])
+        overrides = override_dict(parse_override(kv) for kv in setting["set"])
         return identity(build_config(algorithm, env=env, preset=setting["preset"], task=kind, overrides=overrides,
                                      device=device))
 
@@ -147,8 +147,8 @@ def run_one(data_path: Path, dataset: str, env: str, kind: str, algorithm: str, 
     run_dir = runs / f"{env}-{kind}-{dataset[:12]}" / f"{name}-{seed}"
     done = run_dir / "result.json"
     cfg = None if algorithm == "bc" else build_config(
-        algorithm, env=env, preset=args.preset, task=kind, overrides=dict(parse_override(kv) for kv in args.set),
-        seed=seed, device=args.device)
+        algorithm, env=env, preset=args.preset, task=kind, seed=seed, device=args.device,
+        overrides=override_dict(parse_override(kv) for kv in args.set))
     # Another invocation may list the same run (each lists its runs at start): it trains it while this one waits, then
     # this one takes its record. Two processes resuming one checkpoint would interleave their writes (QUALITY.md E63).
     with ExitStack() as held:
@@ -521,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=str(CACHE), help="directory of ENV-KIND.hdf5 files (make bench-data)")
     p.add_argument("--envs", nargs="+", default=["hopper", "walker2d", "halfcheetah"])
-    p.add_argument("--kinds", nargs="+", default=["random", "medium", "medium-replay", "medium-expert"])
+    p.add_argument("--kinds", nargs="+", default=list(TASKS), choices=TASKS)
     p.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS), choices=ALGORITHMS)
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--preset", default="cpu")

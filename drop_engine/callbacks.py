@@ -90,7 +90,8 @@ class ProgressLine(Callback):
             return
         self._key = key
         share = f" ({100 * step / total:.1f}%)" if total else ""
-        where = f"epoch {epoch}, step {step}/{total}" if phase == "train" else f"{step}/{total}"
+        of = f"/{total}" if total else ""  # a dynamics fit without an epoch cap (the paper preset) has no total
+        where = f"epoch {epoch}, step {step}{of}" if phase == "train" else f"{step}{of}"
         self._print(f"{phase}: {where}{share}")
 
     def on_dynamics(self, dynamics: Mapping[str, Any]) -> None:

@@ -11,7 +11,7 @@ import click
 
 from .atomic import write_text
 from .collect_config import KINDS, CollectConfig, OnlineConfig
-from .config import PRESETS, TASKS, Algorithm, build_config, parse_override
+from .config import PRESETS, TASKS, Algorithm, build_config, override_dict, parse_override
 from .envs import DEFAULT_VERSION, VERSIONS
 from .errors import ConfigError
 from .policy_files import FILE_NAMES
@@ -113,7 +113,7 @@ def train(dataset: str, env: str, algorithm: str, preset: str, task: str | None,
     from .trainer import train as run_training
 
     try:
-        fields = dict(overrides)
+        fields = override_dict(overrides)
         if threads:
             fields["threads"] = threads
         config = build_config(algorithm, env=env, preset=preset, task=task, overrides=fields, seed=seed,

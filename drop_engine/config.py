@@ -8,7 +8,7 @@ the result, so a bad override is rejected before any work starts.
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal, Mapping, get_args
+from typing import Annotated, Any, Iterable, Literal, Mapping, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -322,6 +322,16 @@ def parse_override(text: str) -> tuple[str, Any]:
         return key, json.loads(raw)
     except json.JSONDecodeError:
         return key, raw
+
+
+def override_dict(pairs: Iterable[tuple[str, Any]]) -> dict[str, Any]:
+    """KEY=VALUE pairs (`--set`) as one mapping; a key given twice is refused, not the last silently kept."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ConfigError(f"{key}: given twice in overrides")
+        out[key] = value
+    return out
 
 
 def build_config(

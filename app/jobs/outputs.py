@@ -136,7 +136,8 @@ def jobs_get_curve(job_id: str, owner: OwnerId, s: DbSession) -> Response:
 @router.get("/policy", summary="A trained policy, last or best: TorchScript or ONNX (obs batch -> actions), "
                                "state_dict, or metadata", response_class=FileResponse,
             responses={200: {"description": "The file: binary, or JSON for `format=metadata`", "model": PolicyMetadata,
-                             "content": {"application/octet-stream": {"schema": BINARY}}}})
+                             "content": {"application/octet-stream": {"schema": BINARY}}},
+                       304: {"description": "Not modified: the If-None-Match header holds the file's ETag"}})
 def jobs_get_policy(job_id: str, request: Request, owner: OwnerId, s: DbSession, settings: AppSettings,
                     which: Annotated[Which, Query(description="last: the policy after the final epoch; best: the one "
                                                               "of the evaluation with the highest normalised score "
@@ -149,7 +150,7 @@ def jobs_get_policy(job_id: str, request: Request, owner: OwnerId, s: DbSession,
     response = FileResponse(path, media_type=media, filename=f"{job_id}-{which}-{path.name}",
                             stat_result=os.stat(path))  # sets the ETag now, so it can be compared
     etag = response.headers["etag"]
-    held = {tag.strip().removeprefix("W/") for tag in request.headers.get("if-none-match", "").split(",")}
+    held = {tag.strip().removeprefix("W/") for tag in ",".join(request.headers.getlist("if-none-match")).split(",")}
     if etag in held or "*" in held:
         return Response(status_code=304, headers={"etag": etag})
     return response

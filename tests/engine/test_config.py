@@ -1,7 +1,7 @@
 """Presets compose with the per-dataset table and overrides; bad overrides are rejected by name."""
 import pytest
 
-from drop_engine.config import CPU_BC_WEIGHT, PRESETS, TrainConfig, build_config, parse_override
+from drop_engine.config import CPU_BC_WEIGHT, PRESETS, TrainConfig, build_config, override_dict, parse_override
 from drop_engine.errors import ConfigError
 
 
@@ -151,6 +151,12 @@ def test_non_finite_numbers_are_refused_by_name(overrides, field):
     with pytest.raises(ConfigError) as info:
         build_config("drop", env="hopper", preset="cpu", overrides=overrides)
     assert str(info.value).startswith(f"{field}: Input should be a finite number")
+
+
+def test_a_key_set_twice_on_the_command_line_is_refused():
+    with pytest.raises(ConfigError, match="dice.lr: given twice"):
+        override_dict([parse_override("dice.lr=1e-3"), parse_override("epochs=3"), parse_override("dice.lr=2e-3")])
+    assert override_dict([parse_override("dice.lr=1e-3"), parse_override("epochs=3")]) == {"dice.lr": 1e-3, "epochs": 3}
 
 
 def test_overrides_read_json_values_and_keep_the_rest_as_text():

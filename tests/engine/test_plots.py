@@ -93,6 +93,13 @@ def test_progress_is_a_bar_only_on_a_terminal():
     assert isinstance(progress_reporter(True, io.StringIO()), ProgressLine)
     assert type(progress_reporter(False, Terminal())) is Callback
 
+    lines = io.StringIO()
+    line = ProgressLine(lines)
+    line.on_progress("dynamics", 0, 7, 0)  # a fit without an epoch cap (the paper preset): no total to show
+    line.on_progress("dynamics", 0, 3, 60)
+    line.on_progress("train", 1, 500, 1000)
+    assert lines.getvalue().splitlines() == ["dynamics: 7", "train: epoch 1, step 500/1000 (50.0%)"]
+
 
 def test_diagnose_averages_metrics_by_blocks_of_epochs(tmp_path, capsys):
     run = _fake_run(tmp_path / "drop-0", "drop", 0, [1.0])

@@ -75,8 +75,9 @@ def test_upload_train_download(alice, worker, hopper_file, settings):
     head = alice.head(f"/v1/jobs/{job['id']}/policy")
     assert head.status_code == 200 and not head.content
     assert int(head.headers["content-length"]) == len(r.content) and head.headers["etag"] == r.headers["etag"]
-    same = alice.get(f"/v1/jobs/{job['id']}/policy", headers={"If-None-Match": f'"other", {r.headers["etag"]}'})
-    assert same.status_code == 304 and not same.content and same.headers["etag"] == r.headers["etag"]
+    for held in (f'"other", {r.headers["etag"]}', f'W/{r.headers["etag"]}', "*"):
+        same = alice.get(f"/v1/jobs/{job['id']}/policy", headers={"If-None-Match": held})
+        assert same.status_code == 304 and not same.content and same.headers["etag"] == r.headers["etag"], held
     other = alice.get(f"/v1/jobs/{job['id']}/policy", params={"which": "best"}, headers={"If-None-Match": '"x"'})
     assert other.status_code == 200 and other.content
     policy = torch.jit.load(io.BytesIO(r.content))
