@@ -52,9 +52,10 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
     truth = np.concatenate([true_r[:, None], true_next - obs], 1)
     # The unclamped g(tau): the figure compares how each penalty ranks (s, a), whatever the run's bonus setting.
     unclamped = cfg.penalty.model_copy(update={"bonus": True})
-    drop = (cfg.penalty.eta * ratio_penalty(trainer.dice.tau(o, a), unclamped)).mean(0).numpy()
+    tau = trainer.dice.tau(o, a)
+    drop = (cfg.penalty.eta * ratio_penalty(tau, unclamped)).mean(0).numpy()
     mopo = (cfg.penalty.mopo_lambda * uncertainty_penalty(logvar)).numpy()
-    return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo}
+    return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo, "tau": tau.mean(0).numpy()}
 
 
 @torch.no_grad()
@@ -186,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
                                "all": correlations(both)},
               "mean_error": {"offline": float(offline["error"].mean()),
                              "model_rollout": float(rollout["error"].mean())},
+              # The ratio's normalisation on the data (about 1) and its spread, and on the rollouts.
+              "tau": {group: {"mean": float(rows["tau"].mean()), "std": float(rows["tau"].std())}
+                      for group, rows in groups.items()},
               "mean_distance": {"offline": float(offline["distance"].mean()),
                                 "model_rollout": float(rollout["distance"].mean())},
               "rollout_vs_nearest_data_row": {
@@ -207,6 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     for group, corr in result["correlations"].items():
         for name in ("drop", "mopo"):
             lines.append(f"| {group} | {name} | {corr[name]['spearman']:.3f} | {corr[name]['pearson']:.3f} |")
+    on_data, on_rollouts = result["tau"]["offline"], result["tau"]["model rollout"]
+    lines += ["", f"tau (mean over the elites' estimators): on the data rows {on_data['mean']:.3f} ± "
+              f"{on_data['std']:.3f} (mean ± sd over rows), on the rollouts {on_rollouts['mean']:.3f} ± "
+              f"{on_rollouts['std']:.3f}."]
     lines += ["", "Spearman with the distance to the nearest data row (standardised (s, a); mean distance offline "
               f"{result['mean_distance']['offline']:.2f}, rollout {result['mean_distance']['model_rollout']:.2f}):",
               "", "| samples | DROP penalty | MOPO penalty | true error |", "|---|---|---|---|"]
