@@ -16,7 +16,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy import stats
+from torch import nn
 
 from drop_engine.checkpoint import load_latest
 from drop_engine.config import TrainConfig
@@ -84,17 +86,52 @@ def fresh_estimator(trainer: Trainer, hidden: tuple[int, ...], seed: int) -> Gra
     return dice
 
 
+def classifier_log_ratio(trainer: Trainer, reference: np.ndarray, samples: int, steps: int = 3000):
+    """log d_rollout(s, a) / d_D(s, a) by a plain method, as a reference for what DROP's tau estimates: the logit of a
+    classifier between the final policy's model-rollout (s, a), from fresh starts, and data rows (`reference`, none of
+    the scored ones), fitted on balanced batches so that its logit is the log density ratio. If this ratio tracks the
+    model's error where tau does not, the bound is the GradientDICE estimate; if it does not either, the occupancy
+    ratio itself does not rank (s, a) by the model's error on this file."""
+    cfg, data, model = trainer.cfg, trainer.data, trainer.model
+    buffer = ReplayBuffer(samples * cfg.horizon, data.obs_dim, data.act_dim)
+    model_rollout(trainer.sac.actor, model, trainer.dice, trainer.real.sample(samples)[0], cfg.horizon, "drop",
+                  cfg.penalty, trainer.termination, buffer)
+    pos_obs, pos_act, *_ = buffer.take(torch.arange(len(buffer)))
+
+    def scale(o, a) -> torch.Tensor:
+        return (torch.cat([torch.as_tensor(o), torch.as_tensor(a)], -1) - model.in_mean) / model.in_std
+
+    pos = scale(pos_obs, pos_act)
+    neg = scale(data.observations[reference], data.actions[reference])
+    net = nn.Sequential(nn.Linear(pos.shape[1], 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 1))
+    optim = torch.optim.Adam(net.parameters(), lr=1e-3)
+    labels = torch.cat([torch.ones(256), torch.zeros(256)])
+    for _ in range(steps):
+        x = torch.cat([pos[torch.randint(len(pos), (256,))], neg[torch.randint(len(neg), (256,))]])
+        loss = F.binary_cross_entropy_with_logits(net(x).squeeze(-1), labels)
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+
+    @torch.no_grad()
+    def log_ratio(obs, act) -> np.ndarray:
+        return net(scale(obs, act)).squeeze(-1).numpy()
+
+    return log_ratio
+
+
 def correlations(rows: dict[str, np.ndarray]) -> dict:
     """Each penalty against the true error; and the penalties and the error against the distance from the data
     (where the error does not rise with the distance, no penalty that measures the distance can track the error)."""
     out = {}
-    for name in ("drop", "mopo"):
+    penalties = [name for name in ("drop", "mopo", "classifier") if name in rows]
+    for name in penalties:
         out[name] = {"spearman": float(stats.spearmanr(rows[name], rows["error"]).statistic),
                      "pearson": float(stats.pearsonr(rows[name], rows["error"]).statistic)}
     for against in ("distance", "policy_logp"):
         if against in rows:
             out[f"vs_{against}"] = {name: float(stats.spearmanr(rows[name], rows[against]).statistic)
-                                    for name in ("drop", "mopo", "error")}
+                                    for name in (*penalties, "error")}
     return out
 
 
@@ -135,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dice-hidden", type=lambda v: tuple(int(w) for w in v.split(",")),
                    help="train a fresh estimator of these widths (e.g. 256,256) for --dice-steps instead of the run's: "
                         "does a larger tau resolve the data's density where the model's error changes?")
+    p.add_argument("--classifier-ratio", action="store_true",
+                   help="also rank (s, a) by a classifier's log density ratio of the policy's model rollouts to the "
+                        "data: the ratio DROP estimates, by a plain method")
     args = p.parse_args(argv)
     if args.dice_hidden and not args.dice_steps:
         p.error("--dice-hidden needs --dice-steps: a fresh estimator must be trained")
@@ -176,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     # GradientDICE's objective reads tau only at data rows; a rollout's tau is the network's extrapolation. How much
     # of it is the ratio already at the nearest data row?
     at_nearest = penalties_and_error(trainer, data.observations[nearest], data.actions[nearest])
+    if args.classifier_ratio:
+        log_ratio = classifier_log_ratio(trainer, reference, args.samples)
+        offline["classifier"] = log_ratio(data.observations[idx], data.actions[idx])
+        rollout["classifier"] = log_ratio(obs.numpy(), act.numpy())
 
     groups = {"offline": offline, "model rollout": rollout}
     both = {k: np.concatenate([offline[k], rollout[k]]) for k in rollout}
@@ -221,6 +265,15 @@ def main(argv: list[str] | None = None) -> int:
     for group, corr in result["correlations"].items():
         d = corr["vs_distance"]
         lines.append(f"| {group} | {d['drop']:.3f} | {d['mopo']:.3f} | {d['error']:.3f} |")
+    if args.classifier_ratio:
+        lines += ["", "A classifier's log density ratio of the policy's model rollouts to the data (the ratio DROP "
+                  "estimates, by a plain method), Spearman:", "",
+                  "| samples | vs true error | vs distance | vs log pi(a\\|s) |", "|---|---|---|---|"]
+        for group, corr in result["correlations"].items():
+            logp = corr.get("vs_policy_logp", {}).get("classifier")
+            cells = [f"{corr['classifier']['spearman']:.3f}", f"{corr['vs_distance']['classifier']:.3f}",
+                     f"{logp:.3f}" if logp is not None else ""]
+            lines.append(f"| {group} | " + " | ".join(cells) + " |")
     d = result["correlations"]["offline"]["vs_policy_logp"]
     lines += ["", "Spearman with the policy's log-likelihood of the data action, log pi(a|s), on the offline rows (the "
               "true ratio there carries pi(a|s) / beta(a|s)):", "", "| DROP penalty | MOPO penalty | true error |",
