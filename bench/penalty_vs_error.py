@@ -60,17 +60,28 @@ def penalties_and_error(trainer: Trainer, obs, act, qpos=None, qvel=None) -> dic
     return {"error": np.linalg.norm(elite_mean - truth, axis=1), "drop": drop, "mopo": mopo, "tau": tau.mean(0).numpy()}
 
 
+def model_input(trainer: Trainer, obs, act) -> torch.Tensor:
+    """(s, a) in the dynamics model's standardised input space, where distances from the data are measured."""
+    model = trainer.model
+    return (torch.cat([torch.as_tensor(obs), torch.as_tensor(act)], -1) - model.in_mean) / model.in_std
+
+
+@torch.no_grad()
+def rollout_rows(trainer: Trainer, samples: int) -> ReplayBuffer:
+    """The final policy's h-step model rollouts from `samples` data states, as the run's DROP rollouts are made."""
+    cfg, data = trainer.cfg, trainer.data
+    buffer = ReplayBuffer(samples * cfg.horizon, data.obs_dim, data.act_dim)
+    model_rollout(trainer.sac.actor, trainer.model, trainer.dice, trainer.real.sample(samples)[0], cfg.horizon, "drop",
+                  cfg.penalty, trainer.termination, buffer)
+    return buffer
+
+
 @torch.no_grad()
 def nearest_data_row(trainer: Trainer, obs, act, reference: np.ndarray, chunk: int = 256):
     """Each (s, a)'s distance to the nearest of the `reference` data rows, in the dynamics model's standardised input
     space (how far from the data it lies, what a density ratio ranks by), and that row's index in the data."""
-    model = trainer.model
-
-    def scale(o, a) -> torch.Tensor:
-        return (torch.cat([torch.as_tensor(o), torch.as_tensor(a)], -1) - model.in_mean) / model.in_std
-
-    ref = scale(trainer.data.observations[reference], trainer.data.actions[reference])
-    x = scale(obs, act)
+    ref = model_input(trainer, trainer.data.observations[reference], trainer.data.actions[reference])
+    x = model_input(trainer, obs, act)
     nearest = [torch.cdist(x[i:i + chunk], ref).min(1) for i in range(0, len(x), chunk)]
     distance = torch.cat([n.values for n in nearest]).numpy()
     return distance, reference[torch.cat([n.indices for n in nearest]).numpy()]
@@ -92,17 +103,9 @@ def classifier_log_ratio(trainer: Trainer, reference: np.ndarray, samples: int, 
     the scored ones), fitted on balanced batches so that its logit is the log density ratio. If this ratio tracks the
     model's error where tau does not, the bound is the GradientDICE estimate; if it does not either, the occupancy
     ratio itself does not rank (s, a) by the model's error on this file."""
-    cfg, data, model = trainer.cfg, trainer.data, trainer.model
-    buffer = ReplayBuffer(samples * cfg.horizon, data.obs_dim, data.act_dim)
-    model_rollout(trainer.sac.actor, model, trainer.dice, trainer.real.sample(samples)[0], cfg.horizon, "drop",
-                  cfg.penalty, trainer.termination, buffer)
-    pos_obs, pos_act, *_ = buffer.take(torch.arange(len(buffer)))
-
-    def scale(o, a) -> torch.Tensor:
-        return (torch.cat([torch.as_tensor(o), torch.as_tensor(a)], -1) - model.in_mean) / model.in_std
-
-    pos = scale(pos_obs, pos_act)
-    neg = scale(data.observations[reference], data.actions[reference])
+    buffer = rollout_rows(trainer, samples)
+    pos = model_input(trainer, *buffer.take(torch.arange(len(buffer)))[:2])
+    neg = model_input(trainer, trainer.data.observations[reference], trainer.data.actions[reference])
     net = nn.Sequential(nn.Linear(pos.shape[1], 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 1))
     optim = torch.optim.Adam(net.parameters(), lr=1e-3)
     labels = torch.cat([torch.ones(256), torch.zeros(256)])
@@ -115,7 +118,7 @@ def classifier_log_ratio(trainer: Trainer, reference: np.ndarray, samples: int, 
 
     @torch.no_grad()
     def log_ratio(obs, act) -> np.ndarray:
-        return net(scale(obs, act)).squeeze(-1).numpy()
+        return net(model_input(trainer, obs, act)).squeeze(-1).numpy()
 
     return log_ratio
 
@@ -197,10 +200,7 @@ def main(argv: list[str] | None = None) -> int:
             qpos, qvel = f["infos/qpos"][()][idx], f["infos/qvel"][()][idx]
     offline = penalties_and_error(trainer, data.observations[idx], data.actions[idx], qpos, qvel)
 
-    buffer = ReplayBuffer(args.samples * cfg.horizon, data.obs_dim, data.act_dim)
-    starts = trainer.real.sample(args.samples)[0]
-    model_rollout(trainer.sac.actor, trainer.model, trainer.dice, starts, cfg.horizon, "drop", cfg.penalty,
-                  trainer.termination, buffer)
+    buffer = rollout_rows(trainer, args.samples)
     obs, act, *_ = buffer.take(torch.randperm(len(buffer))[: args.samples])
     rollout = penalties_and_error(trainer, obs.numpy(), act.numpy())
     # The data's rows outside the offline sample (up to 100,000), so an offline row is not its own nearest.

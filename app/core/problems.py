@@ -147,9 +147,9 @@ def install(app: FastAPI) -> None:
                                 headers=getattr(exc, "headers", None))
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError):
+    async def _validation(request: Request, exc: RequestValidationError):
         if unreadable := _unreadable_body(exc):
-            return await _problem(_, unreadable)
+            return await _problem(request, unreadable)
         errors = _field_errors(exc)
         detail = "; ".join(f"{e['field']}: {e['message']}" for e in errors)
         return problem_response(422, _code(exc), detail, errors=errors)
